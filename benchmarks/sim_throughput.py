@@ -1,0 +1,84 @@
+"""Throughput of the full environment step: dynamics, 3-frame depth observation and reward.
+
+Runs the random (medium) scenario with the straight-to-goal reference controller, resetting
+worlds as their episodes end, in one process on one core (numba serial kernels), for
+N = 8, 32 and 64 UAVs per world. It prints a table and, as its last line, one JSON object:
+
+* ``realtime_factor``: simulated swarm-seconds per wall-second for one 8-UAV world;
+* ``realtime_factor_batched``: the same with ``--worlds`` 8-UAV worlds stepped together,
+  counting every world's seconds (what training and evaluation see);
+* per N: agent-steps per second (one UAV advanced by one 0.1 s control period, with its
+  new depth frame and reward) for a single world and for the batch.
+
+Usage: ``python benchmarks/sim_throughput.py [--seconds 3] [--worlds 64]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+
+os.environ.setdefault("NUMBA_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+from sitl.baselines import straight_to_goal  # noqa: E402
+from sitl.config import SimConfig  # noqa: E402
+from sitl.env import SwarmEnv  # noqa: E402
+
+
+def measure(num_uavs: int, num_worlds: int, seconds: float) -> dict:
+    """Step the environment for about ``seconds`` and return its throughput."""
+    config = SimConfig(num_uavs=num_uavs, num_worlds=num_worlds, record_paths=False)
+    env = SwarmEnv(config, seed=0)
+    obs = env.reset()
+    for _ in range(5):  # warm-up (numba's compiled kernels load from cache)
+        obs, *_ = env.step(straight_to_goal(obs.state))
+    steps, started = 0, time.perf_counter()
+    while time.perf_counter() - started < seconds:
+        obs, *_ = env.step(straight_to_goal(obs.state))
+        if env.world_done.any():
+            obs = env.reset_worlds(env.world_done)
+        steps += 1
+    wall = time.perf_counter() - started
+    sim_seconds = steps * config.control_period_s * num_worlds
+    return {
+        "uavs": num_uavs,
+        "worlds": num_worlds,
+        "steps_per_s": steps / wall,
+        "realtime_factor": sim_seconds / wall,
+        "agent_steps_per_s": steps * num_uavs * num_worlds / wall,
+        "ms_per_step": 1000 * wall / steps,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seconds", type=float, default=3.0, help="measuring time per configuration")
+    parser.add_argument("--worlds", type=int, default=64, help="worlds in the batched measurement")
+    args = parser.parse_args()
+
+    results = []
+    for n in (8, 32, 64):
+        for worlds in (1, max(1, args.worlds * 8 // n)):
+            r = measure(n, worlds, args.seconds)
+            results.append(r)
+            print(f"N={n:3d} worlds={worlds:3d}: {r['ms_per_step']:7.3f} ms/step  "
+                  f"real-time x{r['realtime_factor']:8.1f}  {r['agent_steps_per_s']:9.0f} agent-steps/s", flush=True)
+    single8 = next(r for r in results if r["uavs"] == 8 and r["worlds"] == 1)
+    batch8 = next(r for r in results if r["uavs"] == 8 and r["worlds"] > 1)
+    summary = {
+        "benchmark": "sim_throughput",
+        "camera": "32x32 planar depth, 90 deg hfov, 4x4 min-pooled sub-rays",
+        "realtime_factor": round(single8["realtime_factor"], 1),
+        "realtime_factor_batched": round(batch8["realtime_factor"], 1),
+        "batched_worlds": batch8["worlds"],
+        "agent_steps_per_s": {f"N{r['uavs']}_worlds{r['worlds']}": round(r["agent_steps_per_s"]) for r in results},
+    }
+    print(json.dumps(summary))
+
+
+if __name__ == "__main__":
+    main()

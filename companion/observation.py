@@ -1,0 +1,153 @@
+"""Building the policy's observation (paper III.B.1) — the same code in flight and in SITL.
+
+An observation is ``(depth, state)``:
+
+* ``depth``: float32 [3, H, W] planar depth in metres, the last three frames, oldest first;
+* ``state``: float32 [6] laid out as :data:`companion.spec.STATE_NAMES` — the goal in the
+  heading FRD frame and the vehicle's own forward speed, down speed and yaw rate.
+
+All functions are vectorized over a leading batch axis so the simulator can build the
+observations of thousands of UAVs at once with exactly the code the companion runs for one.
+Nothing here depends on the simulator.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from companion.frames import ned_to_frd
+from companion.spec import STATE_DIM, CameraSpec
+
+
+class DepthFrameError(ValueError):
+    """A depth frame that cannot be turned into a valid observation."""
+
+
+def build_state(
+    pos_ned: np.ndarray,
+    yaw_rad: np.ndarray,
+    vel_ned: np.ndarray,
+    yaw_rate_rad_s: np.ndarray,
+    goal_ned: np.ndarray,
+) -> np.ndarray:
+    """Return the policy's state vector(s), float32 [..., 6].
+
+    Args:
+        pos_ned: vehicle position [..., 3] in local NED (m).
+        yaw_rad: heading [...] (rad, from north, positive right).
+        vel_ned: velocity [..., 3] in local NED (m/s).
+        yaw_rate_rad_s: yaw rate [...] (rad/s, positive right).
+        goal_ned: goal position [..., 3] in local NED (m).
+    """
+    goal_frd = ned_to_frd(np.asarray(goal_ned) - np.asarray(pos_ned), yaw_rad)
+    vel_frd = ned_to_frd(vel_ned, yaw_rad)
+    state = np.empty(goal_frd.shape[:-1] + (STATE_DIM,), dtype=np.float32)
+    state[..., 0:3] = goal_frd
+    state[..., 3] = vel_frd[..., 0]
+    state[..., 4] = vel_frd[..., 2]
+    state[..., 5] = yaw_rate_rad_s
+    return state
+
+
+def min_pool_depth(depth_m: np.ndarray, out_height: int, out_width: int, max_range_m: float) -> np.ndarray:
+    """Downsample depth [..., H, W] to [..., out_height, out_width] by min-pooling valid pixels.
+
+    Min-pooling keeps the nearest surface in each block, so a thin or distant object that
+    covers a single source pixel survives the resize (an average would blur it away).
+    Invalid pixels (0, negative or non-finite: a stereo camera's "no data") are ignored;
+    a block with no valid pixel reads ``max_range_m``. Values are clipped to ``max_range_m``.
+    Source sizes that are not multiples of the output use the nearest block boundaries.
+    """
+    depth_m = np.asarray(depth_m, dtype=np.float32)
+    if depth_m.ndim < 2:
+        raise DepthFrameError(f"depth frame must be at least 2-D, got shape {depth_m.shape}")
+    height, width = depth_m.shape[-2:]
+    if height < out_height or width < out_width:
+        raise DepthFrameError(
+            f"depth frame {height}x{width} is smaller than the policy's {out_height}x{out_width}"
+        )
+    valid = np.isfinite(depth_m) & (depth_m > 0)
+    cleaned = np.where(valid, np.minimum(depth_m, max_range_m), np.float32(max_range_m))
+    if height % out_height == 0 and width % out_width == 0:
+        fy, fx = height // out_height, width // out_width
+        blocks = cleaned.reshape(cleaned.shape[:-2] + (out_height, fy, out_width, fx))
+        return blocks.min(axis=(-3, -1)).astype(np.float32)
+    row_edges = np.linspace(0, height, out_height + 1).round().astype(int)
+    col_edges = np.linspace(0, width, out_width + 1).round().astype(int)
+    rows = np.minimum.reduceat(cleaned, row_edges[:-1], axis=-2)
+    return np.minimum.reduceat(rows, col_edges[:-1], axis=-1).astype(np.float32)
+
+
+def crop_to_hfov(depth_m: np.ndarray, source_hfov_deg: float, target: CameraSpec) -> np.ndarray:
+    """Crop a wider camera's frame [..., H, W] to the policy's field of view and aspect.
+
+    Keeps the centred region whose horizontal FOV is ``target.hfov_deg`` and whose aspect
+    ratio is the target's. Raises if the source is narrower than the target.
+    """
+    height, width = depth_m.shape[-2:]
+    src_tan = np.tan(np.radians(source_hfov_deg) / 2)
+    if target.tan_half_hfov > src_tan + 1e-9:
+        raise DepthFrameError(
+            f"camera hfov {source_hfov_deg:.1f} deg is narrower than the policy's {target.hfov_deg:.1f} deg"
+        )
+    keep_w = int(round(width * target.tan_half_hfov / src_tan))
+    keep_h = int(round(keep_w * target.height / target.width))
+    if keep_h > height:
+        raise DepthFrameError(
+            f"camera vertical field of view is too small for the policy's {target.vfov_deg:.1f} deg"
+        )
+    top, left = (height - keep_h) // 2, (width - keep_w) // 2
+    return depth_m[..., top : top + keep_h, left : left + keep_w]
+
+
+def validate_depth_frame(depth_m: np.ndarray, camera: CameraSpec) -> np.ndarray:
+    """Check one frame [H, W] against the camera spec and return it as clean float32.
+
+    Raises :class:`DepthFrameError` with a precise reason for a wrong shape, a wrong
+    dtype or a frame with no finite value at all (a dead sensor, not an empty sky).
+    Non-finite or non-positive pixels are "no data" and read ``max_range_m``.
+    """
+    depth_m = np.asarray(depth_m)
+    if depth_m.shape != (camera.height, camera.width):
+        raise DepthFrameError(f"depth frame has shape {depth_m.shape}, expected ({camera.height}, {camera.width})")
+    if not np.issubdtype(depth_m.dtype, np.floating):
+        raise DepthFrameError(f"depth frame must be floating-point metres, got dtype {depth_m.dtype}")
+    if not np.any(np.isfinite(depth_m)):
+        raise DepthFrameError("depth frame has no finite pixel")
+    valid = np.isfinite(depth_m) & (depth_m > 0)
+    return np.where(valid, np.minimum(depth_m, camera.max_range_m), camera.max_range_m).astype(np.float32)
+
+
+class DepthFrameStack:
+    """The last ``frames`` depth images of ``num_stacks`` cameras, oldest first.
+
+    Stored as one float32 array [num_stacks, frames, H, W] that is the policy's ``depth``
+    input as-is. After a reset the stack is filled with copies of the first frame, so a
+    freshly started vehicle has a full observation at once.
+    """
+
+    def __init__(self, num_stacks: int, camera: CameraSpec) -> None:
+        self.camera = camera
+        self.frames = np.full(
+            (num_stacks, camera.frames, camera.height, camera.width), camera.max_range_m, dtype=np.float32
+        )
+
+    def reset(self, first_frame: np.ndarray, index: np.ndarray | slice = slice(None)) -> None:
+        """Fill the stacks at ``index`` with ``first_frame`` ([k, H, W] or [H, W])."""
+        self.frames[index] = np.asarray(first_frame, dtype=np.float32)[..., None, :, :]
+
+    def push(self, frame: np.ndarray, index: np.ndarray | slice = slice(None)) -> None:
+        """Append the newest frame ([k, H, W] or [H, W]) to the stacks at ``index``."""
+        if isinstance(index, slice) and index == slice(None):
+            self.frames[:, :-1] = self.frames[:, 1:]
+            self.frames[:, -1] = frame
+        else:
+            rolled = self.frames[index]
+            rolled[:, :-1] = rolled[:, 1:]
+            rolled[:, -1] = frame
+            self.frames[index] = rolled
+
+    @property
+    def latest(self) -> np.ndarray:
+        """The newest frame of every stack, [num_stacks, H, W] (a view)."""
+        return self.frames[:, -1]

@@ -1,0 +1,385 @@
+"""Raycast depth camera: planar depth of other UAVs, the ground and static obstacles.
+
+Every UAV carries a forward-looking, level pinhole camera at its centre (see
+:mod:`companion.frames` for the frames and :class:`companion.spec.CameraSpec` for the
+image layout). One call renders the cameras of all UAVs of all worlds.
+
+Rendering is "render high, min-pool down": each output pixel is the minimum planar depth
+over ``supersample x supersample`` rays spread evenly over its footprint. A UAV smaller
+than a pixel therefore still shows up with its true depth instead of vanishing between
+pixel centres — what a stereo camera's min-pooled downsampling gives the companion too.
+The kernel does this at the cost of the *output* resolution: the ground is a plane, whose
+nearest sub-ray in a pixel row is known analytically, and the few pixels an object can
+cover are found from its projected bounding box, where only those sub-rays are cast.
+
+Scene geometry (all in local NED, metres):
+
+* UAVs: oblate spheroids with horizontal semi-axis ``body_radius_m`` and vertical
+  semi-axis ``body_half_height_m`` (default 0.3 m x 0.12 m: a 0.6 m prop-tip span, ~0.25 m
+  tall — an F450-class quadrotor), centred on the UAV position. Invisible UAVs (crashed and
+  removed) are skipped. A camera never sees its own UAV.
+* Ground: the plane z = 0.
+* Boxes: axis-aligned, rows of (north, east, down centre, half-north, half-east, half-down).
+* Cylinders: vertical, rows of (north, east centre, radius, z_top, z_bottom) with
+  z_top < z_bottom (NED: the top is higher, so more negative).
+
+A camera inside a shape reads 0 m in the pixels that see it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from companion.spec import CameraSpec
+
+_EPS_FWD = 1e-3  # an object reaching closer than this to the image plane is not culled
+
+
+@dataclass(frozen=True)
+class SceneGeometry:
+    """Shape of the UAV bodies as the camera sees them."""
+
+    body_radius_m: float = 0.3
+    body_half_height_m: float = 0.12
+
+
+def empty_boxes(num_worlds: int) -> np.ndarray:
+    """A padded obstacle array for worlds without boxes, float64 [num_worlds, 0, 6]."""
+    return np.zeros((num_worlds, 0, 6))
+
+
+def empty_cylinders(num_worlds: int) -> np.ndarray:
+    """A padded obstacle array for worlds without cylinders, float64 [num_worlds, 0, 5]."""
+    return np.zeros((num_worlds, 0, 5))
+
+
+class DepthCamera:
+    """Renders planar depth for every UAV of every world in one call.
+
+    Args:
+        spec: output image layout, field of view and range.
+        supersample: sub-rays per pixel side (min-pooled). 1 casts one ray per pixel centre.
+        geometry: the UAV body shape.
+        parallel: render cameras on all cores (numba threads).
+    """
+
+    def __init__(
+        self,
+        spec: CameraSpec,
+        supersample: int = 4,
+        geometry: SceneGeometry = SceneGeometry(),
+        parallel: bool = False,
+    ) -> None:
+        if supersample < 1:
+            raise ValueError(f"supersample must be >= 1, got {supersample}")
+        self.spec = spec
+        self.supersample = supersample
+        self.geometry = geometry
+        self._kernel = _render_all_parallel if parallel else _render_all
+        # Sub-ray coordinates on the image plane at unit forward distance (tangents):
+        # u to the right, v downwards, at the centres of a (s*H) x (s*W) grid.
+        sub_w, sub_h = spec.width * supersample, spec.height * supersample
+        self.u_sub = (-spec.tan_half_hfov + (np.arange(sub_w) + 0.5) * (2 * spec.tan_half_hfov / sub_w))
+        self.v_sub = (-spec.tan_half_vfov + (np.arange(sub_h) + 0.5) * (2 * spec.tan_half_vfov / sub_h))
+
+    def render(
+        self,
+        pos_ned: np.ndarray,
+        yaw_rad: np.ndarray,
+        uavs_per_world: int,
+        visible: np.ndarray | None = None,
+        boxes: np.ndarray | None = None,
+        cylinders: np.ndarray | None = None,
+        out: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """Render all cameras.
+
+        Args:
+            pos_ned: [B*N, 3] UAV (and camera) positions, world-major (world b holds
+                UAVs b*N .. b*N+N-1).
+            yaw_rad: [B*N] headings.
+            uavs_per_world: N.
+            visible: [B*N] bool, which UAVs are drawn (default all).
+            boxes: [B, K, 6] static boxes per world (see module doc), or None.
+            cylinders: [B, K, 5] static cylinders per world, or None.
+            out: optional float32 [B*N, H, W] to write into.
+
+        Returns:
+            float32 [B*N, H, W] planar depth in metres.
+        """
+        pos_ned = np.ascontiguousarray(pos_ned, dtype=np.float64)
+        yaw_rad = np.ascontiguousarray(yaw_rad, dtype=np.float64)
+        total = pos_ned.shape[0]
+        if total % uavs_per_world:
+            raise ValueError(f"{total} UAVs do not split into worlds of {uavs_per_world}")
+        num_worlds = total // uavs_per_world
+        visible = np.ones(total, dtype=np.bool_) if visible is None else np.ascontiguousarray(visible, dtype=np.bool_)
+        boxes = empty_boxes(num_worlds) if boxes is None else np.ascontiguousarray(boxes, dtype=np.float64)
+        cylinders = empty_cylinders(num_worlds) if cylinders is None else np.ascontiguousarray(cylinders, dtype=np.float64)
+        if boxes.shape[0] != num_worlds or cylinders.shape[0] != num_worlds:
+            raise ValueError("boxes and cylinders need one (possibly empty) row per world")
+        if out is None:
+            out = np.empty((total, self.spec.height, self.spec.width), dtype=np.float32)
+        self._kernel(
+            pos_ned, yaw_rad, visible, uavs_per_world,
+            self.geometry.body_radius_m, self.geometry.body_half_height_m,
+            boxes, cylinders, self.u_sub, self.v_sub,
+            self.spec.tan_half_hfov, self.spec.tan_half_vfov, self.supersample,
+            self.spec.max_range_m, out,
+        )
+        return out
+
+
+# --------------------------------------------------------------------------- kernel
+
+@numba.njit(cache=True, inline="always")
+def _sub_range(lo: float, hi: float, first: float, step: float, count: int) -> tuple[int, int]:
+    """Indices [i0, i1] of grid points first + i*step that fall inside [lo, hi]."""
+    i0 = int(math.ceil((lo - first) / step))
+    i1 = int(math.floor((hi - first) / step))
+    if i0 < 0:
+        i0 = 0
+    if i1 > count - 1:
+        i1 = count - 1
+    return i0, i1
+
+
+@numba.njit(cache=True)
+def _project_box_bounds(cn, ce, cd, hn, he, hd, px, py, pz, cos_y, sin_y, tu, tv, max_range):
+    """Image-plane bounds (umin, umax, vmin, vmax) of an AABB, or flags for cull/full image.
+
+    Returns (status, umin, umax, vmin, vmax) with status 0 = culled, 1 = bounded, 2 = full.
+    """
+    fmin = 1e30
+    fmax = -1e30
+    umin = 1e30
+    umax = -1e30
+    vmin = 1e30
+    vmax = -1e30
+    for sx in (-1.0, 1.0):
+        for sy in (-1.0, 1.0):
+            for sz in (-1.0, 1.0):
+                dn = cn + sx * hn - px
+                de = ce + sy * he - py
+                dd = cd + sz * hd - pz
+                f = cos_y * dn + sin_y * de
+                r = -sin_y * dn + cos_y * de
+                fmin = min(fmin, f)
+                fmax = max(fmax, f)
+                if f > _EPS_FWD:
+                    umin = min(umin, r / f)
+                    umax = max(umax, r / f)
+                    vmin = min(vmin, dd / f)
+                    vmax = max(vmax, dd / f)
+    if fmax <= 0.0 or fmin > max_range:
+        return 0, 0.0, 0.0, 0.0, 0.0
+    if fmin <= _EPS_FWD:
+        return 2, -tu, tu, -tv, tv
+    return 1, umin, umax, vmin, vmax
+
+
+@numba.njit(cache=True)
+def _render_one(m, pos, yaw, visible, n_per_world, a_h, a_v, boxes, cyls, u_sub, v_sub, tu, tv, s, max_range, out):
+    H = out.shape[1]
+    W = out.shape[2]
+    px, py, pz = pos[m, 0], pos[m, 1], pos[m, 2]
+    cos_y = math.cos(yaw[m])
+    sin_y = math.sin(yaw[m])
+    n_sub_u = u_sub.shape[0]
+    n_sub_v = v_sub.shape[0]
+    du = 2.0 * tu / n_sub_u  # sub-ray spacing on the image plane
+    dv = 2.0 * tv / n_sub_v
+
+    # Ground: planar depth along a ray (1, u, v) is -pz / v, independent of u, and smallest
+    # for the lowest sub-ray of a pixel row — so the min-pooled value is exact per row.
+    for i in range(H):
+        v_low = v_sub[i * s + s - 1]
+        if pz >= 0.0:
+            g = 0.0
+        elif v_low > 0.0:
+            g = min(-pz / v_low, max_range)
+        else:
+            g = max_range
+        for j in range(W):
+            out[m, i, j] = g
+
+    # Other UAVs of this world: spheroids, scaled to spheres of radius a_h.
+    k_scale = a_h / a_v
+    world_start = (m // n_per_world) * n_per_world
+    for k in range(world_start, world_start + n_per_world):
+        if k == m or not visible[k]:
+            continue
+        dn = pos[k, 0] - px
+        de = pos[k, 1] - py
+        dd = pos[k, 2] - pz
+        f = cos_y * dn + sin_y * de
+        r = -sin_y * dn + cos_y * de
+        a = a_h  # bounding-sphere radius (a_h >= a_v for an oblate body)
+        if f + a <= 0.0 or f - a > max_range:
+            continue
+        if f - a <= _EPS_FWD:
+            umin, umax, vmin, vmax = -tu, tu, -tv, tv
+        else:
+            umin = min((r - a) / (f - a), (r - a) / (f + a))
+            umax = max((r + a) / (f - a), (r + a) / (f + a))
+            vmin = min((dd - a) / (f - a), (dd - a) / (f + a))
+            vmax = max((dd + a) / (f - a), (dd + a) / (f + a))
+        c0, c1 = _sub_range(umin, umax, u_sub[0], du, n_sub_u)
+        r0, r1 = _sub_range(vmin, vmax, v_sub[0], dv, n_sub_v)
+        cz = dd * k_scale
+        c_sq = f * f + r * r + cz * cz - a * a
+        for ri in range(r0, r1 + 1):
+            v = v_sub[ri]
+            vk = v * k_scale
+            for ci in range(c0, c1 + 1):
+                u = u_sub[ci]
+                A = 1.0 + u * u + vk * vk
+                b = f + u * r + vk * cz
+                if c_sq <= 0.0:
+                    t = 0.0
+                else:
+                    disc = b * b - A * c_sq
+                    if disc < 0.0:
+                        continue
+                    t = (b - math.sqrt(disc)) / A
+                    if t <= 0.0:
+                        continue
+                oi = ri // s
+                oj = ci // s
+                if t < out[m, oi, oj]:
+                    out[m, oi, oj] = t
+
+    w = m // n_per_world
+    # Boxes: slab test in NED along the ray direction (cos - sin u, sin + cos u, v).
+    for q in range(boxes.shape[1]):
+        cn, ce, cd, hn, he, hd = boxes[w, q, 0], boxes[w, q, 1], boxes[w, q, 2], boxes[w, q, 3], boxes[w, q, 4], boxes[w, q, 5]
+        if hn <= 0.0 or he <= 0.0 or hd <= 0.0:
+            continue  # padding row
+        status, umin, umax, vmin, vmax = _project_box_bounds(cn, ce, cd, hn, he, hd, px, py, pz, cos_y, sin_y, tu, tv, max_range)
+        if status == 0:
+            continue
+        c0, c1 = _sub_range(umin, umax, u_sub[0], du, n_sub_u)
+        r0, r1 = _sub_range(vmin, vmax, v_sub[0], dv, n_sub_v)
+        lo_n, hi_n = cn - hn - px, cn + hn - px
+        lo_e, hi_e = ce - he - py, ce + he - py
+        lo_d, hi_d = cd - hd - pz, cd + hd - pz
+        inside = lo_n < 0.0 < hi_n and lo_e < 0.0 < hi_e and lo_d < 0.0 < hi_d
+        for ri in range(r0, r1 + 1):
+            v = v_sub[ri]
+            for ci in range(c0, c1 + 1):
+                u = u_sub[ci]
+                if inside:
+                    t = 0.0
+                else:
+                    wn = cos_y - sin_y * u
+                    we = sin_y + cos_y * u
+                    t_near = 0.0
+                    t_far = 1e30
+                    hit = True
+                    for lo, hi, wd in ((lo_n, hi_n, wn), (lo_e, hi_e, we), (lo_d, hi_d, v)):
+                        if abs(wd) < 1e-12:
+                            if lo > 0.0 or hi < 0.0:
+                                hit = False
+                        else:
+                            t1 = lo / wd
+                            t2 = hi / wd
+                            if t1 > t2:
+                                t1, t2 = t2, t1
+                            t_near = max(t_near, t1)
+                            t_far = min(t_far, t2)
+                    if not hit or t_near > t_far or t_near <= 0.0:
+                        continue
+                    t = t_near
+                oi = ri // s
+                oj = ci // s
+                if t < out[m, oi, oj]:
+                    out[m, oi, oj] = t
+
+    # Vertical cylinders: side surface plus the two caps.
+    for q in range(cyls.shape[1]):
+        cn, ce, rad, z_top, z_bot = cyls[w, q, 0], cyls[w, q, 1], cyls[w, q, 2], cyls[w, q, 3], cyls[w, q, 4]
+        if rad <= 0.0 or z_bot <= z_top:
+            continue  # padding row
+        hd = 0.5 * (z_bot - z_top)
+        status, umin, umax, vmin, vmax = _project_box_bounds(cn, ce, z_top + hd, rad, rad, hd, px, py, pz, cos_y, sin_y, tu, tv, max_range)
+        if status == 0:
+            continue
+        c0, c1 = _sub_range(umin, umax, u_sub[0], du, n_sub_u)
+        r0, r1 = _sub_range(vmin, vmax, v_sub[0], dv, n_sub_v)
+        on, oe = px - cn, py - ce
+        radial_sq = on * on + oe * oe - rad * rad
+        inside = radial_sq < 0.0 and z_top < pz < z_bot
+        for ri in range(r0, r1 + 1):
+            v = v_sub[ri]
+            for ci in range(c0, c1 + 1):
+                u = u_sub[ci]
+                if inside:
+                    t = 0.0
+                else:
+                    wn = cos_y - sin_y * u
+                    we = sin_y + cos_y * u
+                    t = 1e30
+                    A = wn * wn + we * we
+                    b = on * wn + oe * we
+                    disc = b * b - A * radial_sq
+                    if disc >= 0.0 and radial_sq > 0.0:
+                        ts = (-b - math.sqrt(disc)) / A
+                        if ts > 0.0:
+                            zs = pz + ts * v
+                            if z_top <= zs <= z_bot:
+                                t = ts
+                    if abs(v) > 1e-12:
+                        for zc in (z_top, z_bot):
+                            tc = (zc - pz) / v
+                            if 0.0 < tc < t:
+                                hn_ = on + tc * wn
+                                he_ = oe + tc * we
+                                if hn_ * hn_ + he_ * he_ <= rad * rad:
+                                    t = tc
+                    if t >= 1e30:
+                        continue
+                oi = ri // s
+                oj = ci // s
+                if t < out[m, oi, oj]:
+                    out[m, oi, oj] = t
+
+
+@numba.njit(cache=True)
+def _render_all(pos, yaw, visible, n_per_world, a_h, a_v, boxes, cyls, u_sub, v_sub, tu, tv, s, max_range, out):
+    for m in range(pos.shape[0]):
+        _render_one(m, pos, yaw, visible, n_per_world, a_h, a_v, boxes, cyls, u_sub, v_sub, tu, tv, s, max_range, out)
+
+
+@numba.njit(cache=True, parallel=True)
+def _render_all_parallel(pos, yaw, visible, n_per_world, a_h, a_v, boxes, cyls, u_sub, v_sub, tu, tv, s, max_range, out):
+    for m in numba.prange(pos.shape[0]):
+        _render_one(m, pos, yaw, visible, n_per_world, a_h, a_v, boxes, cyls, u_sub, v_sub, tu, tv, s, max_range, out)
+
+
+# --------------------------------------------------------------------------- noise
+
+@dataclass(frozen=True)
+class StereoNoise:
+    """A stereo camera's errors: depth noise growing with the square of the depth, and dropouts.
+
+    ``sigma = quadratic_coeff_per_m * depth^2`` (a D435 at 4 m is off by ~2 %, i.e.
+    0.005 * 16 = 0.08 m), and each pixel is dropped with ``dropout_prob``; a dropped pixel
+    is "no data", which the companion's conversion turns into ``max_range_m``.
+    """
+
+    quadratic_coeff_per_m: float = 0.005
+    dropout_prob: float = 0.01
+
+    def apply(self, depth_m: np.ndarray, max_range_m: float, rng: np.random.Generator) -> np.ndarray:
+        """Return a noisy copy of ``depth_m`` (float32), clipped to [0, max_range_m]."""
+        noisy = depth_m + rng.standard_normal(depth_m.shape, dtype=np.float32) * (
+            np.float32(self.quadratic_coeff_per_m) * depth_m * depth_m
+        )
+        noisy = np.clip(noisy, 0.0, max_range_m)
+        if self.dropout_prob > 0:
+            noisy[rng.random(depth_m.shape) < self.dropout_prob] = max_range_m
+        return noisy.astype(np.float32)

@@ -1,0 +1,26 @@
+"""Dynamics backends behind one interface (:class:`sitl.dynamics.base.Dynamics`).
+
+``kinematic`` (default) is a fast first-order velocity-tracking model; ``jsbsim`` flies
+one JSBSim rigid-body quadrotor per UAV under a velocity controller.
+"""
+
+from __future__ import annotations
+
+from sitl.dynamics.base import Dynamics
+from sitl.dynamics.kinematic import KinematicDynamics, KinematicParams
+
+DYNAMICS_NAMES = ("kinematic", "jsbsim")
+
+
+def make_dynamics(name: str, num_uavs: int) -> Dynamics:
+    """Build the backend called ``name`` for ``num_uavs`` UAVs."""
+    if name == "kinematic":
+        return KinematicDynamics(num_uavs)
+    if name == "jsbsim":
+        from sitl.dynamics.jsbsim_quad import JSBSimDynamics  # jsbsim loads slowly; only when asked
+
+        return JSBSimDynamics(num_uavs)
+    raise ValueError(f"unknown dynamics {name!r}; choose one of {', '.join(DYNAMICS_NAMES)}")
+
+
+__all__ = ["DYNAMICS_NAMES", "Dynamics", "KinematicDynamics", "KinematicParams", "make_dynamics"]

@@ -1,0 +1,28 @@
+"""The paper's reward, eqs. 2-4: progress to the goal plus a penalty for nearby surfaces."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sitl.config import RewardConfig
+
+
+def nearest_depth_m(depth_m: np.ndarray) -> np.ndarray:
+    """d_min of eq. 4: the smallest depth in each UAV's newest image [M, H, W] -> [M]."""
+    return depth_m.reshape(depth_m.shape[0], -1).min(axis=1)
+
+
+def goal_reward(prev_dist_m: np.ndarray, dist_m: np.ndarray, arrived: np.ndarray, cfg: RewardConfig) -> np.ndarray:
+    """Eq. 3: r_arrival inside the arrival radius, else w_goal times the progress made."""
+    return np.where(arrived, cfg.r_arrival, cfg.w_goal * (prev_dist_m - dist_m))
+
+
+def avoid_reward(collided: np.ndarray, d_min_m: np.ndarray, cfg: RewardConfig) -> np.ndarray:
+    """Eq. 4: r_collision on a collision, else w_avoid * max(d_safe - d_min, 0)."""
+    return np.where(collided, cfg.r_collision, cfg.w_avoid * np.maximum(cfg.d_safe_m - d_min_m, 0.0))
+
+
+def step_reward(prev_dist_m: np.ndarray, dist_m: np.ndarray, arrived: np.ndarray, collided: np.ndarray,
+                d_min_m: np.ndarray, cfg: RewardConfig) -> np.ndarray:
+    """Eq. 2: r = r_goal + r_avoid. A UAV that collides gets no arrival bonus in the same step."""
+    return goal_reward(prev_dist_m, dist_m, arrived & ~collided, cfg) + avoid_reward(collided, d_min_m, cfg)

@@ -1,0 +1,121 @@
+"""The raycast depth camera against a brute-force reference and against geometry by hand."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from companion.spec import CameraSpec
+from sitl.camera import DepthCamera, SceneGeometry, StereoNoise
+from tests.reference_camera import render_reference
+
+
+def _random_scene(rng, worlds, per_world):
+    pos = np.column_stack([
+        rng.uniform(-4, 4, worlds * per_world),
+        rng.uniform(-4, 4, worlds * per_world),
+        rng.uniform(-6, -1, worlds * per_world),
+    ])
+    yaw = rng.uniform(-math.pi, math.pi, worlds * per_world)
+    visible = rng.random(worlds * per_world) > 0.15
+    boxes = np.zeros((worlds, 2, 6))
+    boxes[:, 0] = [3.0, 1.0, -3.0, 0.5, 1.0, 1.5]
+    boxes[:, 1, :3] = rng.uniform(-5, 5, (worlds, 3)) * [1, 1, 0.3] - [0, 0, 3]
+    boxes[:, 1, 3:] = rng.uniform(0.2, 1.0, (worlds, 3))
+    cylinders = np.zeros((worlds, 2, 5))
+    cylinders[:, 0] = [-3.0, 2.0, 0.6, -7.0, 0.0]  # a pole standing on the ground
+    cylinders[:, 1] = [0.0, -4.0, 0.4, -5.0, -2.0]  # a floating one: its caps are visible
+    return pos, yaw, visible, boxes, cylinders
+
+
+@pytest.mark.parametrize("supersample", [1, 3])
+def test_kernel_matches_reference(supersample):
+    rng = np.random.default_rng(7)
+    spec = CameraSpec(width=10, height=7, hfov_deg=100.0, max_range_m=12.0)
+    geom = SceneGeometry(body_radius_m=0.6, body_half_height_m=0.3)  # large bodies: many pixels hit
+    pos, yaw, visible, boxes, cylinders = _random_scene(rng, worlds=2, per_world=5)
+    fast = DepthCamera(spec, supersample, geom).render(pos, yaw, 5, visible, boxes, cylinders)
+    slow = render_reference(spec, supersample, pos, yaw, 5, visible, geom.body_radius_m,
+                            geom.body_half_height_m, boxes, cylinders)
+    assert fast.shape == (10, 7, 10) and fast.dtype == np.float32
+    np.testing.assert_allclose(fast, slow, atol=2e-4)
+    # The scene is not trivially empty: UAVs, obstacles and the ground all show up.
+    assert (fast < spec.max_range_m).mean() > 0.3
+
+
+def test_parallel_kernel_matches_serial():
+    rng = np.random.default_rng(3)
+    spec = CameraSpec(width=16, height=16)
+    pos, yaw, visible, boxes, cylinders = _random_scene(rng, worlds=3, per_world=4)
+    serial = DepthCamera(spec, 2).render(pos, yaw, 4, visible, boxes, cylinders)
+    parallel = DepthCamera(spec, 2, parallel=True).render(pos, yaw, 4, visible, boxes, cylinders)
+    np.testing.assert_array_equal(serial, parallel)
+
+
+def test_uav_straight_ahead_reads_distance_minus_radius():
+    spec = CameraSpec(width=32, height=32)
+    pos = np.array([[0.0, 0.0, -100.0], [0.0, 5.0, -100.0]])  # 5 m apart, high above the ground
+    yaw = np.array([math.pi / 2, 0.0])  # first one faces east
+    depth = DepthCamera(spec, 4).render(pos, yaw, 2)
+    # Off-axis sub-rays graze the flat body a little below its nose: 5 - R + <2 cm.
+    assert 5.0 - 0.3 <= depth[0].min() <= 5.0 - 0.3 + 0.02
+    rows, cols = np.nonzero(depth[0] < spec.max_range_m - 1)
+    # Centred in the image, where the optical axis is.
+    assert set(cols) <= {15, 16} and set(rows) <= {15, 16}
+    # The second UAV faces north, so the first one is 90 deg to its left: outside +-45 deg.
+    assert depth[1].min() == pytest.approx(spec.max_range_m)
+
+
+def test_uav_at_safe_distance_covers_pixels_at_default_resolution():
+    spec = CameraSpec()  # the default observation camera
+    pos = np.array([[0.0, 0.0, -10.0], [5.0, 0.0, -10.0], [0.0, 0.0, -30.0], [3.0, 2.9, -29.0]])
+    depth = DepthCamera(spec, 4).render(pos, np.zeros(4), 2)
+    # d_safe = 5 m straight ahead: a 0.6 m x 0.24 m body still covers whole pixels.
+    assert (depth[0] < 5.0).sum() >= 2
+    # Far off-axis and only partly inside a pixel: min-pooling keeps it.
+    assert (depth[2] < 5.0).sum() >= 1
+
+
+def test_ground_depth_is_planar():
+    spec = CameraSpec(width=8, height=8, hfov_deg=90.0, max_range_m=50.0)
+    depth = DepthCamera(spec, 1).render(np.array([[0.0, 0.0, -2.0]]), np.zeros(1), 1)
+    # Bottom row centre ray looks down at tan = (2*7.5/8 - 1) = 0.875: planar depth = h / tan.
+    assert depth[0, 7, 3] == pytest.approx(2.0 / 0.875, rel=1e-5)
+    # Same depth across a row: planar, not Euclidean, distance.
+    assert np.ptp(depth[0, 7]) == 0.0
+    # Rows at or above the horizon see nothing.
+    assert np.all(depth[0, :4] == 50.0)
+
+
+def test_invisible_uavs_are_not_drawn_and_no_self_view():
+    spec = CameraSpec(width=16, height=16)
+    pos = np.array([[0.0, 0.0, -100.0], [3.0, 0.0, -100.0]])
+    cam = DepthCamera(spec, 2)
+    seen = cam.render(pos, np.zeros(2), 2, visible=np.array([True, True]))
+    hidden = cam.render(pos, np.zeros(2), 2, visible=np.array([True, False]))
+    assert seen[0].min() < 3.0 and hidden[0].min() == spec.max_range_m
+    # Worlds are separate: the same two UAVs split into two worlds of one see nothing.
+    assert cam.render(pos, np.zeros(2), 1).min() == spec.max_range_m
+
+
+def test_stereo_noise_grows_with_depth_and_drops_pixels():
+    rng = np.random.default_rng(0)
+    near = np.full((200, 32, 32), 2.0, dtype=np.float32)
+    far = np.full((200, 32, 32), 8.0, dtype=np.float32)
+    noise = StereoNoise(quadratic_coeff_per_m=0.005, dropout_prob=0.05)
+    noisy_near, noisy_far = noise.apply(near, 20.0, rng), noise.apply(far, 20.0, rng)
+    kept_near, kept_far = noisy_near[noisy_near < 20.0], noisy_far[noisy_far < 20.0]
+    assert kept_near.std() == pytest.approx(0.005 * 4, rel=0.1)
+    assert kept_far.std() == pytest.approx(0.005 * 64, rel=0.1)
+    assert (noisy_near == 20.0).mean() == pytest.approx(0.05, abs=0.01)
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError, match="supersample"):
+        DepthCamera(CameraSpec(), 0)
+    with pytest.raises(ValueError, match="do not split"):
+        DepthCamera(CameraSpec(), 1).render(np.zeros((3, 3)), np.zeros(3), 2)
+    with pytest.raises(ValueError, match="hfov"):
+        CameraSpec(hfov_deg=200)

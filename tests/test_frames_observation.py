@@ -1,0 +1,133 @@
+"""Frame conventions and the shared observation code (companion.observation)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from companion.frames import frd_to_ned, ned_to_frd, wrap_angle_rad
+from companion.observation import (
+    DepthFrameError,
+    DepthFrameStack,
+    build_state,
+    crop_to_hfov,
+    min_pool_depth,
+    validate_depth_frame,
+)
+from companion.spec import DEFAULT_ACTION_SPEC, CameraSpec
+from sitl.dynamics import KinematicDynamics
+
+
+def test_heading_frame_rotation():
+    # Facing east (yaw +90 deg), north is to the left and east is straight ahead.
+    east_frd = ned_to_frd(np.array([0.0, 1.0, 0.0]), math.pi / 2)
+    north_frd = ned_to_frd(np.array([1.0, 0.0, 0.0]), math.pi / 2)
+    np.testing.assert_allclose(east_frd, [1, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(north_frd, [0, -1, 0], atol=1e-12)
+    rng = np.random.default_rng(0)
+    vec, yaw = rng.normal(size=(50, 3)), rng.uniform(-4, 4, 50)
+    np.testing.assert_allclose(frd_to_ned(ned_to_frd(vec, yaw), yaw), vec, atol=1e-12)
+    assert wrap_angle_rad(3 * math.pi / 2) == pytest.approx(-math.pi / 2)
+
+
+def test_forward_command_with_yaw_90_moves_east():
+    dyn = KinematicDynamics(1)
+    dyn.reset(np.array([0]), np.array([[0.0, 0.0, -10.0]]), np.array([math.pi / 2]))
+    for _ in range(50):  # 5 s
+        dyn.step(np.array([[2.0, 0.0, 0.0]]), 0.1, np.array([True]))
+    north, east, down = dyn.pos_ned[0]
+    assert east > 8.0 and abs(north) < 1e-6 and down == pytest.approx(-10.0)
+    np.testing.assert_allclose(dyn.vel_ned[0], [0.0, 2.0, 0.0], atol=1e-3)
+
+
+def test_positive_yaw_rate_turns_right_and_down_command_descends():
+    dyn = KinematicDynamics(1)
+    dyn.reset(np.array([0]), np.array([[0.0, 0.0, -10.0]]), np.array([0.0]))
+    for _ in range(30):
+        dyn.step(np.array([[0.0, 0.5, 0.5]]), 0.1, np.array([True]))
+    assert 1.2 < dyn.yaw_rad[0] < 1.5  # ~0.5 rad/s for 3 s minus the spin-up, towards east
+    assert dyn.pos_ned[0, 2] > -9.0  # z down grew: it descended
+    state = build_state(dyn.pos_ned, dyn.yaw_rad, dyn.vel_ned, dyn.yaw_rate_rad_s, np.array([[0.0, 0.0, -10.0]]))
+    assert state[0, 4] == pytest.approx(0.5, abs=1e-3)  # vel_down_m_s
+    assert state[0, 5] == pytest.approx(0.5, abs=1e-3)  # yaw_rate_rad_s
+
+
+def test_kinematic_response_has_lag_and_acceleration_limit():
+    dyn = KinematicDynamics(1)
+    dyn.reset(np.array([0]), np.array([[0.0, 0.0, -10.0]]), np.array([0.0]))
+    dyn.step(np.array([[2.0, 0.0, 0.0]]), 0.1, np.array([True]))
+    assert 0.0 < dyn.vel_ned[0, 0] <= 3.0 * 0.1 + 1e-9  # capped at 3 m/s^2
+    frozen = dyn.pos_ned.copy()
+    dyn.step(np.array([[2.0, 0.0, 0.0]]), 0.1, np.array([False]))
+    np.testing.assert_array_equal(dyn.pos_ned, frozen)
+
+
+def test_state_is_goal_in_body_frame_then_velocity():
+    # UAV at the origin facing east, goal 3 m east, 4 m north, 1 m above it.
+    state = build_state(np.array([[0.0, 0.0, -5.0]]), np.array([math.pi / 2]),
+                        np.array([[0.0, 1.5, -0.2]]), np.array([0.1]), np.array([[4.0, 3.0, -6.0]]))
+    np.testing.assert_allclose(state[0], [3.0, -4.0, -1.0, 1.5, -0.2, 0.1], atol=1e-6)
+    assert state.dtype == np.float32
+
+
+def test_min_pool_keeps_nearest_valid_pixel():
+    frame = np.full((4, 6), 9.0, dtype=np.float32)
+    frame[0, 0] = 2.0
+    frame[3, 5] = 0.0  # a stereo camera's "no data"
+    frame[2, 4] = np.nan
+    frame[1, 3] = 50.0  # beyond max range
+    pooled = min_pool_depth(frame, 2, 3, max_range_m=20.0)
+    np.testing.assert_array_equal(pooled, [[2.0, 9.0, 9.0], [9.0, 9.0, 9.0]])
+    empty = min_pool_depth(np.zeros((4, 4), np.float32), 2, 2, 20.0)
+    assert np.all(empty == 20.0)  # nothing valid: no obstacle known
+    odd = min_pool_depth(np.arange(35, dtype=np.float32).reshape(5, 7) + 1, 2, 3, 100.0)
+    assert odd.shape == (2, 3) and odd[0, 0] == 1.0
+    with pytest.raises(DepthFrameError, match="smaller"):
+        min_pool_depth(frame, 8, 8, 20.0)
+
+
+def test_crop_to_policy_field_of_view():
+    target = CameraSpec(width=4, height=4, hfov_deg=90.0)
+    wide = np.arange(12 * 16, dtype=np.float32).reshape(12, 16)
+    # A 126.87 deg camera (tan half = 2) keeps the central half of its width.
+    crop = crop_to_hfov(wide, math.degrees(2 * math.atan(2.0)), target)
+    assert crop.shape == (8, 8) and crop[0, 0] == wide[2, 4]
+    with pytest.raises(DepthFrameError, match="narrower"):
+        crop_to_hfov(wide, 60.0, target)
+
+
+def test_validate_depth_frame_rejects_malformed_frames():
+    spec = CameraSpec(width=4, height=3)
+    good = validate_depth_frame(np.full((3, 4), 3.0), spec)
+    assert good.dtype == np.float32
+    with pytest.raises(DepthFrameError, match="shape"):
+        validate_depth_frame(np.zeros((4, 3)), spec)
+    with pytest.raises(DepthFrameError, match="dtype"):
+        validate_depth_frame(np.zeros((3, 4), dtype=np.uint16), spec)
+    with pytest.raises(DepthFrameError, match="no finite"):
+        validate_depth_frame(np.full((3, 4), np.nan), spec)
+
+
+def test_frame_stack_is_oldest_first():
+    spec = CameraSpec(width=2, height=2, frames=3)
+    stack = DepthFrameStack(2, spec)
+    stack.reset(np.full((2, 2, 2), 1.0))
+    stack.push(np.full((2, 2, 2), 2.0))
+    stack.push(np.full((1, 2, 2), 3.0), np.array([1]))
+    assert stack.frames[0, :, 0, 0].tolist() == [1.0, 1.0, 2.0]
+    assert stack.frames[1, :, 0, 0].tolist() == [1.0, 2.0, 3.0]
+    assert stack.latest[1, 0, 0] == 3.0
+
+
+def test_action_spec_clips_and_rejects_nan():
+    spec = DEFAULT_ACTION_SPEC
+    clipped = spec.validate(np.array([[3.0, -1.0, 0.7], [-1.0, 0.2, -0.9]]))
+    np.testing.assert_allclose(clipped, [[2.0, -0.5, 0.5], [0.0, 0.2, -0.5]])
+    with pytest.raises(ValueError, match="non-finite"):
+        spec.validate(np.array([[np.nan, 0.0, 0.0]]))
+    with pytest.raises(ValueError, match="out of bounds"):
+        spec.validate(np.array([[3.0, 0.0, 0.0]]), clip=False)
+    with pytest.raises(ValueError, match="shape"):
+        spec.validate(np.zeros((2, 2)))

@@ -1,0 +1,109 @@
+"""Reward terms (paper eqs. 2-4) and metrics (eq. 9) on hand-computed cases."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from sitl.config import RewardConfig, ScenarioConfig, SimConfig
+from sitl.env import SwarmEnv
+from sitl.metrics import UAVRecord, spl, summarize
+from sitl.reward import avoid_reward, goal_reward, nearest_depth_m, step_reward
+
+CFG = RewardConfig()
+
+
+def test_goal_reward_is_scaled_progress_or_arrival_bonus():
+    prev, now = np.array([10.0, 10.0, 0.6]), np.array([9.8, 10.1, 0.4])
+    r = goal_reward(prev, now, arrived=np.array([False, False, True]), cfg=CFG)
+    np.testing.assert_allclose(r, [3.0 * 0.2, 3.0 * -0.1, 50.0])
+
+
+def test_avoid_reward_penalises_near_surfaces_and_collisions():
+    d_min = np.array([8.0, 5.0, 1.0, 1.0])
+    r = avoid_reward(np.array([False, False, False, True]), d_min, CFG)
+    np.testing.assert_allclose(r, [0.0, 0.0, -0.05 * 4.0, -10.0])
+
+
+def test_total_reward_and_collision_cancels_arrival():
+    r = step_reward(np.array([1.0, 1.0]), np.array([0.3, 0.3]), np.array([True, True]),
+                    np.array([False, True]), np.array([10.0, 10.0]), CFG)
+    np.testing.assert_allclose(r, [50.0, 3.0 * 0.7 - 10.0])
+
+
+def test_d_min_is_taken_from_the_depth_image():
+    depth = np.full((2, 4, 4), 20.0, dtype=np.float32)
+    depth[1, 2, 3] = 1.5
+    np.testing.assert_array_equal(nearest_depth_m(depth), [20.0, 1.5])
+
+
+def _head_on_env(**overrides):
+    cfg = SimConfig(num_uavs=2, scenario=ScenarioConfig(name="circle", circle_radius_m=3.0, circle_jitter_m=0.0),
+                    **overrides)
+    env = SwarmEnv(cfg, seed=1)
+    env.reset()
+    return env
+
+
+def test_env_head_on_collision_gives_collision_reward_and_removes_both():
+    env = _head_on_env()
+    rewards = []
+    while not env.world_done.all():
+        obs, r, term, trunc, info = env.step(np.tile([2.0, 0.0, 0.0], (2, 1)))
+        rewards.append(r)
+    assert rewards[-1].tolist() == pytest.approx([rewards[-1][0]] * 2)
+    assert rewards[-1][0] < -9.0  # -10 plus a little progress
+    # On the way in, they saw each other within d_safe and were penalised (eq. 4).
+    assert any(-9 < r[0] < 3.0 * 0.2 - 1e-3 for r in rewards[:-1])
+    records = env.finish()
+    assert [rec.outcome for rec in records] == ["collision_uav", "collision_uav"]
+    assert not env.present.any()
+
+
+def test_crashed_uavs_can_be_kept_frozen():
+    env = _head_on_env(crashed="freeze")
+    while not env.world_done.all():
+        env.step(np.tile([2.0, 0.0, 0.0], (2, 1)))
+    frozen = env.dynamics.pos_ned.copy()
+    assert env.present.all()
+    env.step(np.tile([2.0, 0.0, 0.0], (2, 1)))
+    np.testing.assert_array_equal(env.dynamics.pos_ned, frozen)
+
+
+def test_arrived_uav_hovers_near_goal_and_stays_visible():
+    cfg = SimConfig(num_uavs=1, scenario=ScenarioConfig(name="circle", circle_radius_m=3.0, circle_jitter_m=0.0))
+    env = SwarmEnv(cfg, seed=0)
+    obs = env.reset()
+    from sitl.baselines import straight_to_goal
+    total = 0.0
+    while not env.world_done.all():
+        obs, r, term, trunc, info = env.step(straight_to_goal(obs.state))
+        total += r[0]
+    assert info["outcome"][0] == 1 and term[0] and r[0] >= 50.0
+    assert total == pytest.approx(50.0 + 3.0 * (6.0 - np.linalg.norm(env.goal_ned[0] - env._paths[0][-1])), abs=1.0)
+    for _ in range(30):
+        env.step(np.zeros((1, 3)))
+    assert np.linalg.norm(env.dynamics.pos_ned[0] - env.goal_ned[0]) < 1.0
+    assert np.linalg.norm(env.dynamics.vel_ned[0]) < 0.05 and env.present[0]
+
+
+def _record(outcome, path, straight, episode=0):
+    return UAVRecord(episode=episode, uav=0, start_ned=[0, 0, 0], goal_ned=[straight, 0, 0], outcome=outcome,
+                     path_length_m=path, straight_distance_m=straight, duration_s=path / 1.0 if path else 1.0)
+
+
+def test_spl_matches_equation_9_by_hand():
+    records = [
+        _record("arrived", 12.0, 10.0),  # 10 / 12
+        _record("arrived", 9.6, 10.0),  # reached within 0.5 m: l / max(p, l) = 1
+        _record("collision_uav", 3.0, 10.0),  # S = 0
+        _record("timeout", 30.0, 5.0, episode=1),  # S = 0
+    ]
+    assert spl(records) == pytest.approx((10 / 12 + 1.0) / 4)
+    s = summarize(records)
+    assert s["success_rate"] == 0.5 and s["episodes"] == 2 and s["uav_episodes"] == 4
+    assert s["extra_distance_m"]["mean"] == pytest.approx((2.0 - 0.4) / 2)
+    assert s["collision_uav_rate"] == 0.25 and s["timeout_rate"] == 0.25 and s["collision_ground_rate"] == 0.0
+    assert math.isnan(spl([]))
