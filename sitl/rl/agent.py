@@ -1,0 +1,247 @@
+"""SAC+AE (paper III.C-D) and the baselines that share its soft actor-critic.
+
+Methods (``AgentConfig.method``):
+
+* ``sac_ae`` — the paper's method: the critic's encoder is trained by the critic loss and by
+  a regularised autoencoder (RAE, eq. 8); the actor reuses the critic's convolutions with
+  their gradient stopped (Fig. 2).
+* ``cnn`` — RL+CNN: the same agent without the decoder; the encoder learns from the critic only.
+* ``drq`` — the encoder learns from the critic on randomly shifted images (Kostrikov et al.
+  2020): cheaper per update than the decoder, and reported as more sample-efficient.
+* ``vae`` — RL+VAE: the encoder is a VAE trained beforehand on depth images and frozen; SAC
+  learns on its latent (see :mod:`sitl.rl.vae`).
+
+The update follows the equations: :meth:`SacAeAgent.update_critic` (eqs. 5-6),
+:meth:`SacAeAgent.update_actor_and_alpha` (eq. 7), :meth:`SacAeAgent.update_decoder` (eq. 8).
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from companion.spec import STATE_DIM, ActionSpec, CameraSpec
+from sitl.rl.networks import STATE_SCALE, Actor, Critic, Decoder, DepthNormalizer, Encoder, weight_init
+
+METHODS = ("sac_ae", "cnn", "drq", "vae")
+
+
+@dataclass(frozen=True)
+class AgentConfig:
+    """Hyperparameters of the agent; defaults are the paper's Table I, else the reference's train.py."""
+
+    method: str = field(default="sac_ae", metadata={"help": "learning method (set by --method)"})
+    hidden_dim: int = field(default=1024, metadata={"help": "paper: 3-layer MLPs with 1024 units"})
+    latent_dim: int = field(default=50, metadata={"help": "paper: 50-d latent"})
+    num_filters: int = field(default=32, metadata={"help": "paper: 32 filters per conv layer"})
+    discount: float = field(default=0.99, metadata={"help": "Table I"})
+    critic_lr: float = field(default=1e-3, metadata={"help": "Table I"})
+    critic_beta: float = field(default=0.9, metadata={"help": "reference train.py (Adam beta1)"})
+    critic_tau: float = field(default=0.01, metadata={"help": "Table I: tau_Q"})
+    encoder_tau: float = field(default=0.05, metadata={"help": "Table I: tau_enc"})
+    critic_target_update_freq: int = field(default=2, metadata={"help": "Table I"})
+    actor_lr: float = field(default=1e-3, metadata={"help": "Table I"})
+    actor_beta: float = field(default=0.9, metadata={"help": "reference train.py"})
+    actor_update_freq: int = field(default=2, metadata={"help": "Table I"})
+    init_temperature: float = field(default=0.1, metadata={"help": "reference train.py"})
+    alpha_lr: float = field(default=1e-4, metadata={"help": "reference train.py"})
+    alpha_beta: float = field(default=0.5, metadata={"help": "reference train.py"})
+    encoder_lr: float = field(default=1e-3, metadata={"help": "Table I: autoencoder learning rate"})
+    decoder_lr: float = field(default=1e-3, metadata={"help": "Table I: autoencoder learning rate"})
+    decoder_latent_lambda: float = field(default=1e-6, metadata={"help": "eq. 8: lambda_z"})
+    decoder_weight_lambda: float = field(default=1e-7, metadata={"help": "eq. 8: lambda_phi (L2 on decoder weights)"})
+    decoder_update_freq: int = field(default=1, metadata={"help": "reference train.py"})
+    drq_pad: int = field(default=2, metadata={"help": "drq: random shift of up to this many pixels"})
+
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ValueError(f"unknown method {self.method!r}; choose one of {', '.join(METHODS)}")
+
+
+def random_shift(x: torch.Tensor, pad: int) -> torch.Tensor:
+    """DrQ augmentation: replicate-pad by ``pad`` and crop back at a random offset per sample."""
+    n, c, h, w = x.shape
+    padded = F.pad(x, (pad, pad, pad, pad), mode="replicate")
+    eps = 1.0 / (h + 2 * pad)
+    arange = torch.linspace(-1.0 + eps, 1.0 - eps, h + 2 * pad, device=x.device)[:h]
+    base_y = arange.unsqueeze(1).repeat(1, w)
+    arange_x = torch.linspace(-1.0 + eps, 1.0 - eps, w + 2 * pad, device=x.device)[:w]
+    base_x = arange_x.unsqueeze(0).repeat(h, 1)
+    grid = torch.stack([base_x, base_y], dim=-1).unsqueeze(0).repeat(n, 1, 1, 1)
+    shift = torch.randint(0, 2 * pad + 1, size=(n, 1, 1, 2), device=x.device, dtype=x.dtype)
+    shift *= 2.0 / (torch.tensor([w, h], device=x.device, dtype=x.dtype) + 2 * pad)
+    return F.grid_sample(padded, grid + shift, padding_mode="zeros", align_corners=False)
+
+
+class SacAeAgent(nn.Module):
+    """The shared policy of all UAVs, its critics and (for sac_ae) its decoder."""
+
+    def __init__(self, config: AgentConfig, camera: CameraSpec, action_spec: ActionSpec,
+                 device: torch.device | str = "cpu", vae_encoder: nn.Module | None = None) -> None:
+        super().__init__()
+        self.config = config
+        self.camera = camera
+        self.action_spec = action_spec
+        self.device = torch.device(device)
+        frames, h, w = camera.frames, camera.height, camera.width
+        self.normalize_depth = DepthNormalizer(camera.max_range_m)
+        self.register_buffer("state_scale", torch.tensor(STATE_SCALE, dtype=torch.float32))
+        low = torch.tensor(action_spec.low, dtype=torch.float32)
+        high = torch.tensor(action_spec.high, dtype=torch.float32)
+
+        if config.method == "vae":
+            if vae_encoder is None:
+                raise ValueError("method 'vae' needs a trained VAE encoder")
+            critic_encoder, actor_encoder = vae_encoder, vae_encoder
+            for p in vae_encoder.parameters():
+                p.requires_grad_(False)
+        else:
+            critic_encoder = Encoder(frames, h, w, config.latent_dim, config.num_filters)
+            actor_encoder = Encoder(frames, h, w, config.latent_dim, config.num_filters)
+        self.critic = Critic(critic_encoder, STATE_DIM, len(action_spec.low), config.hidden_dim)
+        self.actor = Actor(actor_encoder, STATE_DIM, low, high, config.hidden_dim)
+        for net in (self.critic, self.actor):
+            for name, child in net.named_children():
+                if name != "encoder" or config.method != "vae":
+                    child.apply(weight_init)
+        if config.method != "vae":
+            self.actor.encoder.tie_convs_to(self.critic.encoder)  # actor convs = critic convs (Fig. 2)
+        self.critic_target = copy.deepcopy(self.critic)
+        self.decoder = None
+        if config.method == "sac_ae":
+            self.decoder = Decoder(frames, h, w, critic_encoder.feature_shape, config.latent_dim)
+            self.decoder.apply(weight_init)
+        self.log_alpha = nn.Parameter(torch.tensor(np.log(config.init_temperature), dtype=torch.float32))
+        self.target_entropy = -float(len(action_spec.low))
+        self.to(self.device)
+
+        trainable_encoder = config.method != "vae"
+        actor_params = [p for n, p in self.actor.named_parameters() if not n.startswith("encoder.convs")]
+        self.actor_optimizer = torch.optim.Adam([p for p in actor_params if p.requires_grad],
+                                                lr=config.actor_lr, betas=(config.actor_beta, 0.999))
+        self.critic_optimizer = torch.optim.Adam([p for p in self.critic.parameters() if p.requires_grad],
+                                                 lr=config.critic_lr, betas=(config.critic_beta, 0.999))
+        self.alpha_optimizer = torch.optim.Adam([self.log_alpha], lr=config.alpha_lr, betas=(config.alpha_beta, 0.999))
+        if self.decoder is not None and trainable_encoder:
+            self.encoder_optimizer = torch.optim.Adam(self.critic.encoder.parameters(), lr=config.encoder_lr)
+            self.decoder_optimizer = torch.optim.Adam(self.decoder.parameters(), lr=config.decoder_lr,
+                                                      weight_decay=config.decoder_weight_lambda)
+        self.updates = 0
+
+    # ------------------------------------------------------------------ inputs
+    def _inputs(self, depth_m: torch.Tensor, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.normalize_depth(depth_m), state / self.state_scale
+
+    @property
+    def alpha(self) -> torch.Tensor:
+        return self.log_alpha.exp()
+
+    @torch.no_grad()
+    def act(self, depth_m: np.ndarray, state: np.ndarray, explore: bool) -> np.ndarray:
+        """Physical actions [B, 3] for a batch of observations (sampled when exploring)."""
+        pixels, st = self._inputs(torch.as_tensor(depth_m, device=self.device, dtype=torch.float32),
+                                  torch.as_tensor(state, device=self.device, dtype=torch.float32))
+        if explore:
+            unit, _, _ = self.actor.sample(pixels, st)
+        else:
+            unit = self.actor.deterministic(pixels, st)
+        return self.actor.to_physical(unit).cpu().numpy()
+
+    def to_unit_action(self, action: np.ndarray) -> np.ndarray:
+        mid = self.actor.action_mid.cpu().numpy()
+        half = self.actor.action_half.cpu().numpy()
+        return np.clip((action - mid) / half, -1.0, 1.0)
+
+    # ------------------------------------------------------------------ updates
+    def update_critic(self, pixels, state, action, reward, next_pixels, next_state, not_done) -> dict:
+        """Eqs. 5-6: regress both Q-functions on the soft Bellman target of the target critic."""
+        with torch.no_grad():
+            next_action, next_log_prob, _ = self.actor.sample(next_pixels, next_state)
+            target_q1, target_q2 = self.critic_target(next_pixels, next_state, next_action)
+            target_v = torch.min(target_q1, target_q2) - self.alpha.detach() * next_log_prob
+            target_q = reward + not_done * self.config.discount * target_v
+        q1, q2 = self.critic(pixels, state, action)
+        loss = F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q)
+        self.critic_optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.critic_optimizer.step()
+        return {"losses/critic": loss.item(), "values/q": q1.mean().item()}
+
+    def update_actor_and_alpha(self, pixels, state) -> dict:
+        """Eq. 7 with the convolutions detached; then the temperature towards the target entropy."""
+        action, log_prob, log_std = self.actor.sample(pixels, state, detach_convs=True)
+        q1, q2 = self.critic(pixels, state, action, detach_encoder=True)
+        actor_loss = (self.alpha.detach() * log_prob - torch.min(q1, q2)).mean()
+        self.actor_optimizer.zero_grad(set_to_none=True)
+        actor_loss.backward()
+        self.actor_optimizer.step()
+        alpha_loss = (self.alpha * (-log_prob - self.target_entropy).detach()).mean()
+        self.alpha_optimizer.zero_grad(set_to_none=True)
+        alpha_loss.backward()
+        self.alpha_optimizer.step()
+        return {"losses/actor": actor_loss.item(), "losses/alpha": alpha_loss.item(),
+                "values/alpha": self.alpha.item(), "values/entropy": -log_prob.mean().item()}
+
+    def update_decoder(self, pixels) -> dict:
+        """Eq. 8 (RAE): reconstruction + lambda_z |z|^2; lambda_phi |phi|^2 is the decoder's weight decay."""
+        latent = self.critic.encoder(pixels)
+        recon = self.decoder(latent)
+        rec_loss = F.mse_loss(recon, pixels)
+        latent_loss = (0.5 * latent.pow(2).sum(1)).mean()
+        loss = rec_loss + self.config.decoder_latent_lambda * latent_loss
+        self.encoder_optimizer.zero_grad(set_to_none=True)
+        self.decoder_optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.encoder_optimizer.step()
+        self.decoder_optimizer.step()
+        return {"losses/reconstruction": rec_loss.item()}
+
+    def soft_update_targets(self) -> None:
+        """EMA of the critic (tau_Q) and of its encoder (tau_enc), Table I."""
+        cfg = self.config
+        with torch.no_grad():
+            for name in ("q1", "q2"):
+                for p, tp in zip(getattr(self.critic, name).parameters(), getattr(self.critic_target, name).parameters()):
+                    tp.lerp_(p, cfg.critic_tau)
+            if cfg.method != "vae":
+                for p, tp in zip(self.critic.encoder.parameters(), self.critic_target.encoder.parameters()):
+                    tp.lerp_(p, cfg.encoder_tau)
+
+    def update(self, batch: dict[str, torch.Tensor]) -> dict:
+        """One gradient step of every part due at this update count."""
+        cfg = self.config
+        pixels, state = self._inputs(batch["depth"], batch["state"])
+        next_pixels, next_state = self._inputs(batch["next_depth"], batch["next_state"])
+        if cfg.method == "drq":
+            pixels, next_pixels = random_shift(pixels, cfg.drq_pad), random_shift(next_pixels, cfg.drq_pad)
+        info = self.update_critic(pixels, state, batch["action"], batch["reward"], next_pixels, next_state,
+                                  batch["not_done"])
+        if self.updates % cfg.actor_update_freq == 0:
+            info |= self.update_actor_and_alpha(pixels, state)
+        if self.updates % cfg.critic_target_update_freq == 0:
+            self.soft_update_targets()
+        if self.decoder is not None and self.updates % cfg.decoder_update_freq == 0:
+            info |= self.update_decoder(pixels)
+        self.updates += 1
+        return info
+
+    # ------------------------------------------------------------------ checkpoints
+    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        names = ["actor_optimizer", "critic_optimizer", "alpha_optimizer", "encoder_optimizer", "decoder_optimizer"]
+        return {n: getattr(self, n) for n in names if hasattr(self, n)}
+
+    def checkpoint(self) -> dict:
+        return {"model": self.state_dict(), "updates": self.updates,
+                "optimizers": {n: o.state_dict() for n, o in self.optimizers().items()}}
+
+    def restore(self, checkpoint: dict) -> None:
+        self.load_state_dict(checkpoint["model"])
+        self.updates = checkpoint["updates"]
+        for name, opt in self.optimizers().items():
+            opt.load_state_dict(checkpoint["optimizers"][name])

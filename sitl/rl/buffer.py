@@ -1,0 +1,109 @@
+"""Replay buffer that stores every depth frame once.
+
+A transition's observation is a stack of the last ``k`` frames and its next observation is
+the same stack shifted by one new frame, so storing ``obs`` and ``next_obs`` as images would
+keep each frame ``2k`` times. Here frames live once in a ring (float16 metres: ~1 cm
+resolution at 20 m) and a transition keeps the indices of its ``k + 1`` frames.
+
+Memory: ``frame_capacity * H * W * 2`` bytes of frames, with ``frame_capacity = 2 *
+capacity + 8 * agents`` (every transition adds one frame, every episode start adds one,
+and an episode has at least one transition, so a frame is never overwritten while a
+transition that uses it is alive), plus ~60 bytes of vectors per transition. For the
+default 20,000 transitions of 32x32 images and 128 agents that is 85 MB — a plain
+obs/next_obs buffer of float32 stacks would take 492 MB.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+
+class FrameReplayBuffer:
+    """Transitions of many agents sharing one policy (centralised training, paper Alg. 1)."""
+
+    def __init__(self, capacity: int, num_agents: int, frames: int, height: int, width: int, state_dim: int,
+                 action_dim: int, seed: int = 0) -> None:
+        self.capacity = capacity
+        self.frames_per_obs = frames
+        self.frame_capacity = 2 * capacity + 8 * num_agents
+        self.frame_store = np.zeros((self.frame_capacity, height, width), dtype=np.float16)
+        self.frame_index = np.zeros((capacity, frames + 1), dtype=np.int64)  # obs frames, then the new one
+        self.state = np.zeros((capacity, state_dim), dtype=np.float32)
+        self.next_state = np.zeros((capacity, state_dim), dtype=np.float32)
+        self.action = np.zeros((capacity, action_dim), dtype=np.float32)
+        self.reward = np.zeros((capacity, 1), dtype=np.float32)
+        self.not_done = np.zeros((capacity, 1), dtype=np.float32)
+        self.size = 0
+        self._next = 0
+        self._next_frame = 0
+        self.agent_stack = np.zeros((num_agents, frames), dtype=np.int64)  # each agent's current obs frames
+        self.rng = np.random.default_rng(seed)
+
+    @property
+    def nbytes(self) -> int:
+        arrays = (self.frame_store, self.frame_index, self.state, self.next_state, self.action, self.reward, self.not_done)
+        return sum(a.nbytes for a in arrays)
+
+    def _store_frames(self, frames: np.ndarray) -> np.ndarray:
+        count = frames.shape[0]
+        idx = (self._next_frame + np.arange(count)) % self.frame_capacity
+        self.frame_store[idx] = frames
+        self._next_frame = (self._next_frame + count) % self.frame_capacity
+        return idx
+
+    def start_episodes(self, agents: np.ndarray, first_frames: np.ndarray) -> None:
+        """Agents ``agents`` start an episode whose first image is ``first_frames`` [k, H, W]."""
+        if len(agents) == 0:
+            return
+        idx = self._store_frames(first_frames)
+        self.agent_stack[agents] = idx[:, None]
+
+    def add(self, agents: np.ndarray, state: np.ndarray, action: np.ndarray, reward: np.ndarray,
+            next_frames: np.ndarray, next_state: np.ndarray, terminated: np.ndarray) -> None:
+        """Store one step of the agents in ``agents`` (all arrays have one row per agent listed).
+
+        ``terminated`` means the episode truly ended (arrival or collision): no bootstrap.
+        A time-out is not terminal (its next state is still worth something).
+        """
+        count = len(agents)
+        if count == 0:
+            return
+        new_frames = self._store_frames(next_frames)
+        rows = (self._next + np.arange(count)) % self.capacity
+        self.frame_index[rows, :-1] = self.agent_stack[agents]
+        self.frame_index[rows, -1] = new_frames
+        self.state[rows] = state
+        self.action[rows] = action
+        self.reward[rows, 0] = reward
+        self.next_state[rows] = next_state
+        self.not_done[rows, 0] = 1.0 - terminated.astype(np.float32)
+        self.agent_stack[agents] = np.concatenate([self.agent_stack[agents, 1:], new_frames[:, None]], axis=1)
+        self._next = (self._next + count) % self.capacity
+        self.size = min(self.size + count, self.capacity)
+
+    def sample(self, batch_size: int, device: torch.device) -> dict[str, torch.Tensor]:
+        """A uniform batch; depth comes back as float32 metres [B, k, H, W]."""
+        rows = self.rng.integers(0, self.size, size=batch_size)
+        frames = torch.from_numpy(self.frame_store[self.frame_index[rows]].astype(np.float32)).to(device)
+        k = self.frames_per_obs
+        as_tensor = lambda a: torch.from_numpy(a[rows]).to(device)  # noqa: E731
+        return {
+            "depth": frames[:, :k],
+            "next_depth": frames[:, 1:],
+            "state": as_tensor(self.state),
+            "action": as_tensor(self.action),
+            "reward": as_tensor(self.reward),
+            "next_state": as_tensor(self.next_state),
+            "not_done": as_tensor(self.not_done),
+        }
+
+    def state_dict(self) -> dict:
+        return {k: v for k, v in vars(self).items() if k != "rng"} | {"rng": self.rng.bit_generator.state}
+
+    def load_state_dict(self, state: dict) -> None:
+        for key, value in state.items():
+            if key == "rng":
+                self.rng.bit_generator.state = value
+            else:
+                setattr(self, key, value)

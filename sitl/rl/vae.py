@@ -1,0 +1,79 @@
+"""The RL+VAE baseline's image model: a VAE trained on depth images, then frozen.
+
+The paper's protocol: collect depth images by flying a trained policy in the swarm, train a
+VAE on them, freeze it and learn SAC on its latent mean. The encoder has the same conv stack
+as SAC+AE's, so the comparison isolates how the representation is learned.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from sitl.rl.networks import Decoder, DepthNormalizer, conv_output_side, weight_init
+
+
+class VAEEncoder(nn.Module):
+    """Conv stack -> (mean, log-variance) of a diagonal Gaussian latent; ``forward`` gives the mean."""
+
+    def __init__(self, frames: int, height: int, width: int, latent_dim: int = 50, filters: int = 32) -> None:
+        super().__init__()
+        self.convs = nn.ModuleList([nn.Conv2d(frames, filters, 3, stride=2)] +
+                                   [nn.Conv2d(filters, filters, 3, stride=1) for _ in range(3)])
+        self.feature_shape = (filters, conv_output_side(height), conv_output_side(width))
+        self.fc_mu = nn.Linear(math.prod(self.feature_shape), latent_dim)
+        self.fc_logvar = nn.Linear(math.prod(self.feature_shape), latent_dim)
+        self.latent_dim = latent_dim
+
+    def features(self, x: torch.Tensor) -> torch.Tensor:
+        for conv in self.convs:
+            x = torch.relu(conv(x))
+        return x.flatten(1)
+
+    def moments(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        f = self.features(x)
+        return self.fc_mu(f), self.fc_logvar(f)
+
+    def forward(self, x: torch.Tensor, detach_convs: bool = False) -> torch.Tensor:
+        return self.fc_mu(self.features(x))
+
+
+def train_vae(images_m: np.ndarray, max_range_m: float, latent_dim: int = 50, epochs: int = 20, batch_size: int = 128,
+              lr: float = 1e-3, beta: float = 1.0, seed: int = 0, progress=None) -> tuple[VAEEncoder, list[float]]:
+    """Train a VAE on stacked depth images [K, frames, H, W] (metres); return the frozen encoder and losses."""
+    torch.manual_seed(seed)
+    frames, height, width = images_m.shape[1:]
+    encoder = VAEEncoder(frames, height, width, latent_dim)
+    decoder = Decoder(frames, height, width, encoder.feature_shape, latent_dim)
+    encoder.apply(weight_init)
+    decoder.apply(weight_init)
+    normalize = DepthNormalizer(max_range_m)
+    data = normalize(torch.as_tensor(images_m, dtype=torch.float32))
+    optimizer = torch.optim.Adam([*encoder.parameters(), *decoder.parameters()], lr=lr)
+    losses = []
+    for _ in range(epochs):
+        order = torch.randperm(len(data))
+        total = 0.0
+        for start in range(0, len(data), batch_size):
+            x = data[order[start:start + batch_size]]
+            mu, logvar = encoder.moments(x)
+            z = mu + torch.randn_like(mu) * (0.5 * logvar).exp()
+            recon = decoder(z)
+            rec = F.mse_loss(recon, x, reduction="sum") / len(x)
+            kl = -0.5 * torch.sum(1 + logvar - mu.pow(2) - logvar.exp()) / len(x)
+            loss = rec + beta * kl
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            total += loss.item() * len(x)
+        losses.append(total / len(data))
+        if progress is not None:
+            progress(len(losses), losses[-1])
+    encoder.eval()
+    for p in encoder.parameters():
+        p.requires_grad_(False)
+    return encoder, losses

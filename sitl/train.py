@@ -1,0 +1,459 @@
+"""``python -m sitl.train``: train the shared collision-avoidance policy (paper Alg. 1).
+
+All UAVs of all simulated worlds act with one policy and feed one replay buffer
+(centralised training, decentralised execution). The loop alternates environment steps
+and gradient updates; the agent and its equations are in :mod:`sitl.rl.agent`.
+
+Presets (``--preset``):
+
+* ``fast`` (default) — trains on a 2-core laptop in under 2 hours: 32x32 depth, two
+  worlds of 8 UAVs stepped together, one update per environment step (16 transitions),
+  a fixed budget of updates. Every other hyperparameter is the paper's Table I.
+* ``paper`` — Table I literally: one world of 8 UAVs, 200 episodes, 400 updates after
+  each episode, replay capacity 20,000, 64x64 depth.
+
+Everything is a command-line flag (``--help``); a run directory holds ``config.json``,
+TensorBoard logs (``tb/``), ``learning_curve.png``, ``checkpoint.pt`` (``--resume RUN_DIR``
+continues from it) and the exported ``policy.pt``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from companion.spec import CameraSpec
+from sitl.config import SCENARIOS, ScenarioConfig, SimConfig, density_from_name
+from sitl.env import SwarmEnv
+from sitl.metrics import summarize
+from sitl.rl.agent import METHODS, AgentConfig, SacAeAgent
+from sitl.rl.buffer import FrameReplayBuffer
+from sitl.rl.export import export_policy
+
+EVAL_SEED_OFFSET = 1_000_000  # evaluation seeds are >= this; training seeds are below it
+
+
+def _param(default, help: str):
+    return field(default=default, metadata={"help": help})
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything a training run depends on besides the agent's hyperparameters."""
+
+    preset: str = _param("fast", "fast (CPU, < 2 h) or paper (Table I literally); explicit flags override it")
+    method: str = _param("sac_ae", f"learning method: {', '.join(METHODS)}")
+    scenario: str = _param("random", "training scenario: random or circle")
+    density: str = _param("medium", "random scenario density: small, medium, large or UAV/m^3")
+    num_uavs: int = _param(8, "UAVs per world")
+    num_worlds: int = _param(2, "worlds stepped together (vectorised rollouts)")
+    image_size: int = _param(32, "depth image side in pixels (square, 90 deg FOV)")
+    max_episode_steps: int = _param(200, "episode time limit in 0.1 s steps")
+    batch_size: int = _param(128, "Table I: batch size")
+    replay_capacity: int = _param(50_000, "transitions kept (Table I: 20000)")
+    max_episodes: int = _param(0, "stop after this many world episodes (0: no limit; Table I: 200)")
+    total_updates: int = _param(25_000, "stop after this many gradient updates (0: no limit)")
+    updates_per_episode: int = _param(0, "updates owed per finished world episode (Table I: 400)")
+    updates_per_env_step: float = _param(1.0, "updates owed per vectorised environment step")
+    init_steps: int = _param(2_000, "transitions of uniform random actions before learning starts")
+    eval_every_updates: int = _param(2_500, "evaluate the deterministic policy every so many updates (0: never)")
+    eval_episodes: int = _param(20, "episodes per periodic evaluation (seeds disjoint from training)")
+    final_eval_episodes: int = _param(100, "episodes of the final evaluation recorded in policy.json")
+    checkpoint_every_s: float = _param(300.0, "seconds between checkpoints")
+    seed: int = _param(0, "seed of the environment, the buffer and torch")
+    device: str = _param("cpu", "torch device: cpu or cuda")
+    threads: int = _param(2, "torch intra-op threads")
+    run_dir: str = _param("", "run directory (default runs/<method>-<scenario>-<density>-s<seed>-<time>)")
+    vae_policy: str = _param("", "vae method: policy.pt that flies while depth images are collected")
+    vae_images: int = _param(20_000, "vae method: stacked depth images to collect")
+    vae_epochs: int = _param(20, "vae method: training epochs of the VAE")
+
+    def __post_init__(self) -> None:
+        if self.preset not in PRESETS:
+            raise ValueError(f"unknown preset {self.preset!r}; choose one of {', '.join(PRESETS)}")
+        if self.method not in METHODS:
+            raise ValueError(f"unknown method {self.method!r}; choose one of {', '.join(METHODS)}")
+        if self.scenario not in SCENARIOS:
+            raise ValueError(f"unknown scenario {self.scenario!r}; choose one of {', '.join(SCENARIOS)}")
+        density_from_name(self.density)
+        for name in ("num_uavs", "num_worlds", "image_size", "max_episode_steps", "batch_size", "replay_capacity",
+                     "threads"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.image_size < 16:
+            raise ValueError(f"image_size must be >= 16 (the encoder shrinks it by 14 pixels), got {self.image_size}")
+        if self.max_episodes <= 0 and self.total_updates <= 0:
+            raise ValueError("set max_episodes or total_updates: the run needs an end")
+        if self.updates_per_episode <= 0 and self.updates_per_env_step <= 0:
+            raise ValueError("set updates_per_episode or updates_per_env_step: the run needs updates")
+        if self.device.startswith("cuda") and not torch.cuda.is_available():
+            raise ValueError("--device cuda asked for, but torch sees no CUDA device")
+
+
+PRESETS: dict[str, dict] = {
+    "fast": {},
+    "paper": {"num_worlds": 1, "image_size": 64, "replay_capacity": 20_000, "max_episodes": 200,
+              "total_updates": 0, "updates_per_episode": 400, "updates_per_env_step": 0.0, "init_steps": 1_000},
+}
+
+
+# --------------------------------------------------------------------------- command line
+
+def _add_dataclass_flags(parser: argparse.ArgumentParser, cls, title: str) -> None:
+    group = parser.add_argument_group(title)
+    for f in fields(cls):
+        if any(a.dest == f.name for a in parser._actions):
+            continue  # e.g. method: one flag sets both configs
+        flag = "--" + f.name.replace("_", "-")
+        kind = type(f.default)
+        help_text = f.metadata.get("help", "") + f" (default: {f.default})"
+        group.add_argument(flag, dest=f.name, type=kind, default=argparse.SUPPRESS, help=help_text)
+
+
+def parse_args(argv: list[str] | None = None) -> tuple[TrainConfig, AgentConfig, str | None]:
+    """Build the two configs: defaults, then the preset, then explicit flags."""
+    parser = argparse.ArgumentParser(prog="python -m sitl.train", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--resume", metavar="RUN_DIR", default=None, help="continue the run in RUN_DIR from its checkpoint")
+    _add_dataclass_flags(parser, TrainConfig, "training")
+    _add_dataclass_flags(parser, AgentConfig, "agent (paper Table I; reference train.py where the paper is silent)")
+    args = vars(parser.parse_args(argv))
+    resume = args.pop("resume")
+    train_names = {f.name for f in fields(TrainConfig)}
+    train_args = {k: v for k, v in args.items() if k in train_names}
+    agent_args = {k: v for k, v in args.items() if k not in train_names}
+    try:
+        preset = train_args.get("preset", "fast")
+        if preset not in PRESETS:
+            raise ValueError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
+        train_cfg = TrainConfig(**{**PRESETS[preset], **train_args})
+        agent_cfg = AgentConfig(**{"method": train_cfg.method, **agent_args})
+    except ValueError as err:
+        parser.error(str(err))
+    return train_cfg, agent_cfg, resume
+
+
+# --------------------------------------------------------------------------- pieces
+
+def make_sim_config(cfg: TrainConfig, num_worlds: int, record_paths: bool = False) -> SimConfig:
+    scenario = ScenarioConfig(name=cfg.scenario, density=density_from_name(cfg.density))
+    camera = CameraSpec(width=cfg.image_size, height=cfg.image_size)
+    return SimConfig(num_uavs=cfg.num_uavs, num_worlds=num_worlds, scenario=scenario, camera=camera,
+                     max_episode_steps=cfg.max_episode_steps, record_paths=record_paths)
+
+
+def evaluate(act, sim_config: SimConfig, seed: int) -> dict:
+    """Fly ``act(depth, state) -> actions`` deterministically in every world of ``sim_config`` once."""
+    env = SwarmEnv(sim_config, seed=seed)
+    obs = env.reset()
+    while not env.world_done.all():
+        obs, *_ = env.step(act(obs.depth, obs.state))
+    return summarize(env.finish())
+
+
+def default_run_dir(cfg: TrainConfig) -> Path:
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    return Path("runs") / f"{cfg.method}-{cfg.scenario}-{cfg.density}-s{cfg.seed}-{stamp}"
+
+
+def plot_learning_curve(history: dict, path: Path, title: str) -> None:
+    """Paper Fig. 4 style: average episode reward (and success rate) against episodes."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    episodes = np.asarray(history["episode"])
+    if len(episodes) == 0:
+        return
+    fig, (ax_r, ax_s) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
+    for key, ax, label in (("return", ax_r, "average reward per UAV"), ("success", ax_s, "success rate")):
+        values = np.asarray(history[key], dtype=float)
+        window = max(1, min(50, len(values) // 10))
+        smooth = np.convolve(values, np.ones(window) / window, mode="valid")
+        ax.plot(episodes, values, color="tab:green", alpha=0.25, lw=0.8)
+        ax.plot(episodes[window - 1:], smooth, color="tab:green", lw=2)
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    if history.get("eval_episode"):
+        ax_s.plot(history["eval_episode"], history["eval_success"], "o-", color="tab:blue", label="evaluation")
+        ax_s.legend()
+    ax_s.set_xlabel("episode")
+    ax_r.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _atomic_save(obj, path: Path) -> None:
+    tmp = path.with_suffix(".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)  # a run killed mid-save keeps its previous checkpoint
+
+
+def build_vae_encoder(cfg: TrainConfig, sim_config: SimConfig, log) -> torch.nn.Module:
+    """RL+VAE's protocol: collect depth images with a trained policy, train a VAE, freeze it."""
+    from companion.policy import load_policy
+    from sitl.baselines import straight_to_goal
+    from sitl.rl.vae import train_vae
+
+    if cfg.vae_policy:
+        policy = load_policy(cfg.vae_policy)
+        act = policy.act
+        log(f"collecting {cfg.vae_images} depth images with {cfg.vae_policy}")
+    else:
+        act = lambda depth, state: straight_to_goal(state)  # noqa: E731
+        log(f"no --vae-policy given: collecting {cfg.vae_images} depth images with the straight-to-goal reference")
+    env = SwarmEnv(sim_config, seed=cfg.seed + 7)
+    obs = env.reset()
+    images = []
+    count = 0
+    while count < cfg.vae_images:
+        rows = np.flatnonzero(env.acting)
+        images.append(obs.depth[rows].astype(np.float16))
+        count += len(rows)
+        obs, *_ = env.step(act(obs.depth, obs.state))
+        if env.world_done.any():
+            obs = env.reset_worlds(env.world_done)
+    data = np.concatenate(images)[: cfg.vae_images].astype(np.float32)
+    encoder, losses = train_vae(data, sim_config.camera.max_range_m, epochs=cfg.vae_epochs, seed=cfg.seed,
+                                progress=lambda e, loss: log(f"VAE epoch {e}/{cfg.vae_epochs}: loss {loss:.2f}"))
+    return encoder
+
+
+# --------------------------------------------------------------------------- the loop
+
+class Trainer:
+    """One training run: environment, agent, buffer, logs and checkpoints."""
+
+    def __init__(self, cfg: TrainConfig, agent_cfg: AgentConfig, run_dir: Path, resume: bool = False) -> None:
+        self.cfg, self.agent_cfg, self.run_dir = cfg, agent_cfg, run_dir
+        torch.set_num_threads(cfg.threads)
+        torch.manual_seed(cfg.seed)
+        self.sim_config = make_sim_config(cfg, cfg.num_worlds)
+        self.env = SwarmEnv(self.sim_config, seed=cfg.seed)
+        vae_encoder = None
+        if agent_cfg.method == "vae" and not resume:
+            vae_encoder = build_vae_encoder(cfg, self.sim_config, self.log)
+        elif agent_cfg.method == "vae":
+            from sitl.rl.vae import VAEEncoder
+
+            cam = self.sim_config.camera
+            vae_encoder = VAEEncoder(cam.frames, cam.height, cam.width, agent_cfg.latent_dim)
+        self.agent = SacAeAgent(agent_cfg, self.sim_config.camera, self.env.action_spec, cfg.device, vae_encoder)
+        cam = self.sim_config.camera
+        self.buffer = FrameReplayBuffer(cfg.replay_capacity, self.env.num_agents, cam.frames, cam.height, cam.width,
+                                        6, 3, seed=cfg.seed)
+        self.counters = {"env_steps": 0, "transitions": 0, "episodes": 0, "updates": 0, "wall_s": 0.0,
+                         "update_credit": 0.0}
+        self.history: dict[str, list] = {"episode": [], "return": [], "success": [], "eval_episode": [],
+                                         "eval_success": [], "eval_spl": []}
+        from torch.utils.tensorboard import SummaryWriter
+
+        self.writer = SummaryWriter(str(run_dir / "tb"))
+        if resume:
+            self._restore(torch.load(run_dir / "checkpoint.pt", weights_only=False))
+
+    def log(self, message: str) -> None:
+        print(message, file=sys.stderr, flush=True)
+
+    # -------------------------------------------------------------- checkpoints
+    def save_checkpoint(self) -> None:
+        _atomic_save({
+            "agent": self.agent.checkpoint(), "buffer": self.buffer.state_dict(), "counters": dict(self.counters),
+            "history": self.history, "env_rng": self.env.rng.bit_generator.state,
+            "torch_rng": torch.get_rng_state(),
+        }, self.run_dir / "checkpoint.pt")
+        plot_learning_curve(self.history, self.run_dir / "learning_curve.png", self._title())
+
+    def _restore(self, ckpt: dict) -> None:
+        self.agent.restore(ckpt["agent"])
+        self.buffer.load_state_dict(ckpt["buffer"])
+        self.counters = ckpt["counters"]
+        self.history = ckpt["history"]
+        self.env.rng.bit_generator.state = ckpt["env_rng"]
+        torch.set_rng_state(ckpt["torch_rng"])
+        self.log(f"resumed from {self.run_dir / 'checkpoint.pt'}: {self.counters['updates']} updates, "
+                 f"{self.counters['episodes']} episodes")
+
+    def _title(self) -> str:
+        c = self.cfg
+        return f"{c.method}, {c.scenario} {c.density}, N={c.num_uavs}"
+
+    # -------------------------------------------------------------- helpers
+    def finished(self) -> bool:
+        c, k = self.cfg, self.counters
+        return (c.total_updates > 0 and k["updates"] >= c.total_updates) or \
+               (c.max_episodes > 0 and k["episodes"] >= c.max_episodes)
+
+    def evaluate(self, episodes: int) -> dict:
+        sim = make_sim_config(self.cfg, episodes)
+        summary = evaluate(lambda d, s: self.agent.act(d, s, explore=False), sim,
+                           seed=EVAL_SEED_OFFSET + self.cfg.seed)
+        return summary
+
+    # -------------------------------------------------------------- main loop
+    def run(self) -> Path:
+        from tqdm import tqdm
+
+        cfg, env, agent, buffer, k = self.cfg, self.env, self.agent, self.buffer, self.counters
+        obs = env.reset()
+        everyone = np.arange(env.num_agents)
+        buffer.start_episodes(everyone, obs.depth[:, -1])
+        returns = np.zeros(env.num_agents)
+        low, high = env.action_spec.low_array(), env.action_spec.high_array()
+        rng = np.random.default_rng(cfg.seed + k["env_steps"])
+        total = cfg.total_updates if cfg.total_updates > 0 else cfg.max_episodes
+        unit = "update" if cfg.total_updates > 0 else "episode"
+        bar = tqdm(total=total, initial=k["updates"] if unit == "update" else k["episodes"], unit=unit,
+                   desc=self._title(), file=sys.stderr, dynamic_ncols=True, mininterval=2.0)
+        started = time.perf_counter() - k["wall_s"]
+        last_ckpt = time.perf_counter()
+        next_eval = (k["updates"] // cfg.eval_every_updates + 1) * cfg.eval_every_updates if cfg.eval_every_updates else math.inf
+        window_t, window_steps, window_updates = time.perf_counter(), 0, 0
+        recent_success: list[float] = self.history["success"][-20:]
+
+        while not self.finished():
+            acting = env.acting.copy()
+            rows = np.flatnonzero(acting)
+            if k["transitions"] < cfg.init_steps:
+                action = rng.uniform(low, high, size=(env.num_agents, 3)).astype(np.float32)
+            else:
+                action = agent.act(obs.depth, obs.state, explore=True)
+            state = obs.state
+            obs, reward, terminated, truncated, info = env.step(action)
+            buffer.add(rows, state[rows], agent.to_unit_action(action[rows]), reward[rows], obs.depth[rows, -1],
+                       obs.state[rows], terminated[rows])
+            returns += reward
+            k["env_steps"] += 1
+            k["transitions"] += len(rows)
+            k["update_credit"] += cfg.updates_per_env_step
+            window_steps += len(rows)
+
+            done_worlds = env.world_done
+            if done_worlds.any():
+                episode_ids = env.world_episode.copy()
+                obs = env.reset_worlds(done_worlds)
+                for b in np.flatnonzero(done_worlds):
+                    world_rows = slice(b * env.uavs_per_world, (b + 1) * env.uavs_per_world)
+                    records = [r for r in env.completed if r.episode == episode_ids[b]]
+                    success = float(np.mean([r.success for r in records])) if records else 0.0
+                    k["episodes"] += 1
+                    self.history["episode"].append(k["episodes"])
+                    self.history["return"].append(float(returns[world_rows].mean()))
+                    self.history["success"].append(success)
+                    recent_success = (recent_success + [success])[-20:]
+                    self.writer.add_scalar("charts/episode_reward", returns[world_rows].mean(), k["episodes"])
+                    self.writer.add_scalar("charts/success_rate", success, k["episodes"])
+                    returns[world_rows] = 0.0
+                    k["update_credit"] += cfg.updates_per_episode
+                    if unit == "episode":
+                        bar.update(1)
+                env.completed.clear()
+                reset_rows = np.flatnonzero(np.repeat(done_worlds, env.uavs_per_world))
+                buffer.start_episodes(reset_rows, obs.depth[reset_rows, -1])
+
+            if k["transitions"] >= cfg.init_steps and buffer.size >= cfg.batch_size:
+                todo = int(k["update_credit"])
+                if cfg.total_updates > 0:
+                    todo = min(todo, cfg.total_updates - k["updates"])
+                for _ in range(todo):
+                    info = agent.update(buffer.sample(cfg.batch_size, agent.device))
+                    k["updates"] += 1
+                    window_updates += 1
+                    if unit == "update":
+                        bar.update(1)
+                    if k["updates"] % 100 == 0:
+                        for name, value in info.items():
+                            self.writer.add_scalar(name, value, k["updates"])
+                k["update_credit"] -= todo
+            else:
+                k["update_credit"] = 0.0  # no debt piles up while the buffer fills
+
+            now = time.perf_counter()
+            if now - window_t > 10:
+                env_rate, upd_rate = window_steps / (now - window_t), window_updates / (now - window_t)
+                self.writer.add_scalar("charts/transitions_per_s", env_rate, k["updates"])
+                self.writer.add_scalar("charts/updates_per_s", upd_rate, k["updates"])
+                bar.set_postfix(ep=k["episodes"], succ=f"{np.mean(recent_success) if recent_success else 0:.2f}",
+                                sps=f"{env_rate:.0f}", ups=f"{upd_rate:.2f}")
+                window_t, window_steps, window_updates = now, 0, 0
+            if k["updates"] >= next_eval:
+                summary = self.evaluate(cfg.eval_episodes)
+                self.history["eval_episode"].append(k["episodes"])
+                self.history["eval_success"].append(summary["success_rate"])
+                self.history["eval_spl"].append(summary["spl"])
+                self.writer.add_scalar("eval/success_rate", summary["success_rate"], k["updates"])
+                self.writer.add_scalar("eval/spl", summary["spl"], k["updates"])
+                bar.write(f"eval @ {k['updates']} updates, {k['episodes']} episodes: success "
+                          f"{summary['success_rate']:.3f}, SPL {summary['spl']:.3f}")
+                next_eval += cfg.eval_every_updates
+            if now - last_ckpt > cfg.checkpoint_every_s:
+                k["wall_s"] = time.perf_counter() - started
+                self.save_checkpoint()
+                last_ckpt = time.perf_counter()
+
+        bar.close()
+        k["wall_s"] = time.perf_counter() - started
+        self.save_checkpoint()
+        return self.finish()
+
+    def finish(self) -> Path:
+        """Final evaluation on unseen seeds, then export policy.pt with its provenance."""
+        cfg, k = self.cfg, self.counters
+        self.log(f"final evaluation: {cfg.final_eval_episodes} episodes, seeds >= {EVAL_SEED_OFFSET}")
+        summary = self.evaluate(cfg.final_eval_episodes) if cfg.final_eval_episodes else {}
+        provenance = {
+            "method": cfg.method, "scenario": cfg.scenario, "density": cfg.density, "num_uavs": cfg.num_uavs,
+            "preset": cfg.preset, "updates": k["updates"], "env_steps": k["env_steps"],
+            "transitions": k["transitions"], "episodes": k["episodes"], "wall_time_s": round(k["wall_s"], 1),
+            "seed": cfg.seed, "device": cfg.device, "threads": cfg.threads,
+            "evaluation": {"episodes": cfg.final_eval_episodes, "seed": EVAL_SEED_OFFSET + cfg.seed,
+                           "scenario": cfg.scenario, "density": cfg.density, **summary},
+        }
+        path = self.run_dir / "policy.pt"
+        export_policy(self.agent, path, self.sim_config.control_period_s, provenance)
+        (self.run_dir / "final_eval.json").write_text(json.dumps(provenance, indent=2))
+        self.writer.close()
+        if summary:
+            self.log(f"success {summary['success_rate']:.3f}, SPL {summary['spl']:.3f}; wrote {path}")
+        return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    cfg, agent_cfg, resume = parse_args(argv)
+    if resume:
+        run_dir = Path(resume)
+        if not (run_dir / "checkpoint.pt").is_file():
+            print(f"error: {run_dir} has no checkpoint.pt to resume from", file=sys.stderr)
+            return 2
+        saved = json.loads((run_dir / "config.json").read_text())
+        cfg, agent_cfg = TrainConfig(**saved["train"]), AgentConfig(**saved["agent"])
+    else:
+        run_dir = Path(cfg.run_dir) if cfg.run_dir else default_run_dir(cfg)
+        if run_dir.exists() and any(run_dir.iterdir()):
+            print(f"error: run directory {run_dir} already exists and is not empty; "
+                  f"use --resume {run_dir} to continue it or choose another --run-dir", file=sys.stderr)
+            return 2
+        run_dir.mkdir(parents=True, exist_ok=True)
+        cfg = replace(cfg, run_dir=str(run_dir))
+        (run_dir / "config.json").write_text(json.dumps(
+            {"train": dataclasses.asdict(cfg), "agent": dataclasses.asdict(agent_cfg)}, indent=2))
+    trainer = Trainer(cfg, agent_cfg, run_dir, resume=bool(resume))
+    trainer.log(f"run directory {run_dir}; replay buffer {trainer.buffer.nbytes / 2**20:.0f} MiB")
+    trainer.run()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
