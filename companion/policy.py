@@ -31,6 +31,7 @@ a :class:`PolicyFileError` that says what is wrong.
 from __future__ import annotations
 
 import json
+import warnings
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -70,10 +71,24 @@ def save_policy(module, metadata: dict, path: str | Path) -> None:
     """Script ``module`` (if it is not already TorchScript) and save it with its metadata."""
     import torch
 
-    scripted = module if isinstance(module, torch.jit.ScriptModule) else torch.jit.script(module)
     _check_metadata(metadata, str(path))
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    torch.jit.save(scripted, str(path), _extra_files={METADATA_FILE: json.dumps(metadata, indent=2)})
+    with _QuietJitDeprecation():
+        scripted = module if isinstance(module, torch.jit.ScriptModule) else torch.jit.script(module)
+        torch.jit.save(scripted, str(path), _extra_files={METADATA_FILE: json.dumps(metadata, indent=2)})
+
+
+class _QuietJitDeprecation(warnings.catch_warnings):
+    """Silence torch's TorchScript deprecation warning inside the block.
+
+    TorchScript is the contract: it runs on the vehicle without the model's Python code.
+    torch >= 2.9 marks it deprecated in favour of torch.export, which has no such loader yet.
+    """
+
+    def __enter__(self):
+        result = super().__enter__()
+        warnings.filterwarnings("ignore", category=DeprecationWarning, message=r".*torch\.jit.*")
+        return result
 
 
 @dataclass
@@ -136,7 +151,8 @@ def load_policy(path: str | Path, *, check_forward: bool = True) -> LoadedPolicy
     _require(zipfile.is_zipfile(path), path, "not a TorchScript policy file (not a zip archive: wrong or corrupted file)")
     extra = {METADATA_FILE: ""}
     try:
-        module = torch.jit.load(path, map_location="cpu", _extra_files=extra)
+        with _QuietJitDeprecation():
+            module = torch.jit.load(path, map_location="cpu", _extra_files=extra)
     except Exception as err:  # torch raises RuntimeError subclasses with long C++ traces
         first_line = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise PolicyFileError(f"{path}: not a loadable TorchScript module ({first_line})") from err

@@ -55,6 +55,8 @@ class TrainConfig:
     method: str = _param("sac_ae", f"learning method: {', '.join(METHODS)}")
     scenario: str = _param("random", "training scenario: random or circle")
     density: str = _param("medium", "random scenario density: small, medium, large or UAV/m^3")
+    circle_radius_m: float = _param(12.0, "circle scenario radius in m")
+    yaw_jitter_deg: float = _param(45.0, "random scenario: initial heading error from the goal bearing, up to +-deg")
     num_uavs: int = _param(8, "UAVs per world")
     num_worlds: int = _param(2, "worlds stepped together (vectorised rollouts)")
     image_size: int = _param(32, "depth image side in pixels (square, 90 deg FOV)")
@@ -146,7 +148,8 @@ def parse_args(argv: list[str] | None = None) -> tuple[TrainConfig, AgentConfig,
 # --------------------------------------------------------------------------- pieces
 
 def make_sim_config(cfg: TrainConfig, num_worlds: int, record_paths: bool = False) -> SimConfig:
-    scenario = ScenarioConfig(name=cfg.scenario, density=density_from_name(cfg.density))
+    scenario = ScenarioConfig(name=cfg.scenario, density=density_from_name(cfg.density),
+                              circle_radius_m=cfg.circle_radius_m, yaw_jitter_rad=math.radians(cfg.yaw_jitter_deg))
     camera = CameraSpec(width=cfg.image_size, height=cfg.image_size)
     return SimConfig(num_uavs=cfg.num_uavs, num_worlds=num_worlds, scenario=scenario, camera=camera,
                      max_episode_steps=cfg.max_episode_steps, record_paths=record_paths)
@@ -174,17 +177,18 @@ def plot_learning_curve(history: dict, path: Path, title: str) -> None:
     import matplotlib.pyplot as plt
 
     episodes = np.asarray(history["episode"])
-    if len(episodes) == 0:
-        return
     fig, (ax_r, ax_s) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
     for key, ax, label in (("return", ax_r, "average reward per UAV"), ("success", ax_s, "success rate")):
         values = np.asarray(history[key], dtype=float)
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+        if len(values) == 0:
+            ax.text(0.5, 0.5, "no finished episode yet", ha="center", transform=ax.transAxes)
+            continue
         window = max(1, min(50, len(values) // 10))
         smooth = np.convolve(values, np.ones(window) / window, mode="valid")
         ax.plot(episodes, values, color="tab:green", alpha=0.25, lw=0.8)
         ax.plot(episodes[window - 1:], smooth, color="tab:green", lw=2)
-        ax.set_ylabel(label)
-        ax.grid(alpha=0.3)
     if history.get("eval_episode"):
         ax_s.plot(history["eval_episode"], history["eval_success"], "o-", color="tab:blue", label="evaluation")
         ax_s.legend()
@@ -321,7 +325,7 @@ class Trainer:
         last_ckpt = time.perf_counter()
         next_eval = (k["updates"] // cfg.eval_every_updates + 1) * cfg.eval_every_updates if cfg.eval_every_updates else math.inf
         window_t, window_steps, window_updates = time.perf_counter(), 0, 0
-        recent_success: list[float] = self.history["success"][-20:]
+        latest_losses: dict[str, float] = {}
 
         while not self.finished():
             acting = env.acting.copy()
@@ -352,7 +356,6 @@ class Trainer:
                     self.history["episode"].append(k["episodes"])
                     self.history["return"].append(float(returns[world_rows].mean()))
                     self.history["success"].append(success)
-                    recent_success = (recent_success + [success])[-20:]
                     self.writer.add_scalar("charts/episode_reward", returns[world_rows].mean(), k["episodes"])
                     self.writer.add_scalar("charts/success_rate", success, k["episodes"])
                     returns[world_rows] = 0.0
@@ -368,13 +371,13 @@ class Trainer:
                 if cfg.total_updates > 0:
                     todo = min(todo, cfg.total_updates - k["updates"])
                 for _ in range(todo):
-                    info = agent.update(buffer.sample(cfg.batch_size, agent.device))
+                    latest_losses |= agent.update(buffer.sample(cfg.batch_size, agent.device))
                     k["updates"] += 1
                     window_updates += 1
                     if unit == "update":
                         bar.update(1)
                     if k["updates"] % 100 == 0:
-                        for name, value in info.items():
+                        for name, value in latest_losses.items():
                             self.writer.add_scalar(name, value, k["updates"])
                 k["update_credit"] -= todo
             else:
@@ -385,7 +388,7 @@ class Trainer:
                 env_rate, upd_rate = window_steps / (now - window_t), window_updates / (now - window_t)
                 self.writer.add_scalar("charts/transitions_per_s", env_rate, k["updates"])
                 self.writer.add_scalar("charts/updates_per_s", upd_rate, k["updates"])
-                bar.set_postfix(ep=k["episodes"], succ=f"{np.mean(recent_success) if recent_success else 0:.2f}",
+                bar.set_postfix(ep=k["episodes"], succ=f"{np.mean(self.history['success'][-20:] or [0]):.2f}",
                                 sps=f"{env_rate:.0f}", ups=f"{upd_rate:.2f}")
                 window_t, window_steps, window_updates = now, 0, 0
             if k["updates"] >= next_eval:

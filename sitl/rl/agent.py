@@ -25,8 +25,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from companion.spec import STATE_DIM, ActionSpec, CameraSpec
-from sitl.rl.networks import STATE_SCALE, Actor, Critic, Decoder, DepthNormalizer, Encoder, weight_init
+from companion.spec import ActionSpec, CameraSpec
+from sitl.rl.networks import STATE_FEATURES, Actor, Critic, Decoder, DepthNormalizer, Encoder, StateFeatures, weight_init
 
 METHODS = ("sac_ae", "cnn", "drq", "vae")
 
@@ -91,7 +91,7 @@ class SacAeAgent(nn.Module):
         self.device = torch.device(device)
         frames, h, w = camera.frames, camera.height, camera.width
         self.normalize_depth = DepthNormalizer(camera.max_range_m)
-        self.register_buffer("state_scale", torch.tensor(STATE_SCALE, dtype=torch.float32))
+        self.state_features = StateFeatures()
         low = torch.tensor(action_spec.low, dtype=torch.float32)
         high = torch.tensor(action_spec.high, dtype=torch.float32)
 
@@ -104,8 +104,8 @@ class SacAeAgent(nn.Module):
         else:
             critic_encoder = Encoder(frames, h, w, config.latent_dim, config.num_filters)
             actor_encoder = Encoder(frames, h, w, config.latent_dim, config.num_filters)
-        self.critic = Critic(critic_encoder, STATE_DIM, len(action_spec.low), config.hidden_dim)
-        self.actor = Actor(actor_encoder, STATE_DIM, low, high, config.hidden_dim)
+        self.critic = Critic(critic_encoder, STATE_FEATURES, len(action_spec.low), config.hidden_dim)
+        self.actor = Actor(actor_encoder, STATE_FEATURES, low, high, config.hidden_dim)
         for net in (self.critic, self.actor):
             for name, child in net.named_children():
                 if name != "encoder" or config.method != "vae":
@@ -136,7 +136,7 @@ class SacAeAgent(nn.Module):
 
     # ------------------------------------------------------------------ inputs
     def _inputs(self, depth_m: torch.Tensor, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        return self.normalize_depth(depth_m), state / self.state_scale
+        return self.normalize_depth(depth_m), self.state_features(state)
 
     @property
     def alpha(self) -> torch.Tensor:
@@ -175,8 +175,15 @@ class SacAeAgent(nn.Module):
 
     def update_actor_and_alpha(self, pixels, state) -> dict:
         """Eq. 7 with the convolutions detached; then the temperature towards the target entropy."""
-        action, log_prob, log_std = self.actor.sample(pixels, state, detach_convs=True)
-        q1, q2 = self.critic(pixels, state, action, detach_encoder=True)
+        if self.config.method == "vae":
+            action, log_prob, log_std = self.actor.sample(pixels, state)
+            q1, q2 = self.critic(pixels, state, action, detach_encoder=True)
+        else:
+            # The actor's convolutions are the critic's: compute them once, without gradient.
+            with torch.no_grad():
+                features = self.critic.encoder.conv_features(pixels)
+            action, log_prob, log_std = self.actor.sample_from_latent(self.actor.encoder.head(features), state)
+            q1, q2 = self.critic.q_from_latent(self.critic.encoder.head(features).detach(), state, action)
         actor_loss = (self.alpha.detach() * log_prob - torch.min(q1, q2)).mean()
         self.actor_optimizer.zero_grad(set_to_none=True)
         actor_loss.backward()

@@ -21,7 +21,7 @@ class ExportedPolicy(nn.Module):
         self.encoder = copy.deepcopy(agent.actor.encoder).cpu()  # own copy of the tied convolutions
         self.trunk = copy.deepcopy(agent.actor.trunk).cpu()
         self.max_range_m = float(agent.camera.max_range_m)
-        self.register_buffer("state_scale", agent.state_scale.detach().cpu().clone())
+        self.state_features = copy.deepcopy(agent.state_features).cpu()
         self.register_buffer("action_mid", agent.actor.action_mid.detach().cpu().clone())
         self.register_buffer("action_half", agent.actor.action_half.detach().cpu().clone())
         self.action_dim = int(self.action_mid.numel())
@@ -29,7 +29,7 @@ class ExportedPolicy(nn.Module):
     def forward(self, depth: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
         pixels = torch.clamp(depth, 0.0, self.max_range_m) / self.max_range_m - 0.5
         latent = self.encoder(pixels)
-        mu = self.trunk(torch.cat([latent, state / self.state_scale], dim=1))[:, : self.action_dim]
+        mu = self.trunk(torch.cat([latent, self.state_features(state)], dim=1))[:, : self.action_dim]
         return self.action_mid + self.action_half * torch.tanh(mu)
 
 

@@ -11,9 +11,11 @@ import math
 import torch
 from torch import nn
 
-#: Divisors that bring the state to order one: goal (m), forward and down speed (m/s),
-#: yaw rate (rad/s).
-STATE_SCALE = (10.0, 10.0, 10.0, 2.0, 0.5, 0.5)
+#: Divisors that bring the velocity part of the state to order one: forward and down
+#: speed (m/s), yaw rate (rad/s).
+VELOCITY_SCALE = (2.0, 0.5, 0.5)
+GOAL_DISTANCE_SCALE_M = 10.0
+STATE_FEATURES = 7  # goal direction (3), goal distance (1), velocity (3)
 LOG_STD_MIN, LOG_STD_MAX = -10.0, 2.0  # Table I: actor log-std bounds
 
 
@@ -45,6 +47,26 @@ class DepthNormalizer(nn.Module):
 
     def forward(self, depth_m: torch.Tensor) -> torch.Tensor:
         return torch.clamp(depth_m, 0.0, self.max_range_m) / self.max_range_m - 0.5
+
+
+class StateFeatures(nn.Module):
+    """The state vector in physical units -> the features the MLPs see.
+
+    The goal becomes a unit direction and a distance: the bearing stays as clear at 0.5 m
+    from the goal as at 20 m, which a plain goal / scale loses near arrival. Distances
+    above 2 x ``GOAL_DISTANCE_SCALE_M`` saturate.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.register_buffer("velocity_scale", torch.tensor(VELOCITY_SCALE, dtype=torch.float32))
+
+    def forward(self, state: torch.Tensor) -> torch.Tensor:
+        goal = state[:, 0:3]
+        distance = torch.linalg.vector_norm(goal, dim=1, keepdim=True)
+        direction = goal / torch.clamp(distance, min=1e-6)
+        scaled = torch.clamp(distance / GOAL_DISTANCE_SCALE_M, max=2.0)
+        return torch.cat([direction, scaled, state[:, 3:6] / self.velocity_scale], dim=1)
 
 
 class Encoder(nn.Module):
@@ -120,14 +142,19 @@ class Actor(nn.Module):
 
     def distribution(self, pixels: torch.Tensor, state: torch.Tensor, detach_convs: bool = False):
         """Mean and log-std of the pre-tanh Gaussian."""
-        latent = self.encoder(pixels, detach_convs=detach_convs)
+        return self.distribution_from_latent(self.encoder(pixels, detach_convs=detach_convs), state)
+
+    def distribution_from_latent(self, latent: torch.Tensor, state: torch.Tensor):
         mu, log_std = self.trunk(torch.cat([latent, state], dim=1)).chunk(2, dim=-1)
         log_std = LOG_STD_MIN + 0.5 * (LOG_STD_MAX - LOG_STD_MIN) * (torch.tanh(log_std) + 1)
         return mu, log_std
 
     def sample(self, pixels: torch.Tensor, state: torch.Tensor, detach_convs: bool = False):
-        """(action in [-1, 1], log-prob) with the reparameterisation trick and tanh correction."""
-        mu, log_std = self.distribution(pixels, state, detach_convs)
+        """(action in [-1, 1], log-prob, log-std) with the reparameterisation trick and tanh correction."""
+        return self.sample_from_latent(self.encoder(pixels, detach_convs=detach_convs), state)
+
+    def sample_from_latent(self, latent: torch.Tensor, state: torch.Tensor):
+        mu, log_std = self.distribution_from_latent(latent, state)
         std = log_std.exp()
         noise = torch.randn_like(mu)
         pre_tanh = mu + noise * std
@@ -157,5 +184,8 @@ class Critic(nn.Module):
         latent = self.encoder(pixels, detach_convs=detach_encoder)
         if detach_encoder:
             latent = latent.detach()
+        return self.q_from_latent(latent, state, action)
+
+    def q_from_latent(self, latent: torch.Tensor, state: torch.Tensor, action: torch.Tensor):
         x = torch.cat([latent, state, action], dim=1)
         return self.q1(x), self.q2(x)

@@ -1,0 +1,153 @@
+"""The trainer's parts: replay buffer, baselines' updates, command line, checkpoint and resume."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from companion.spec import DEFAULT_ACTION_SPEC, CameraSpec
+from sitl.rl.agent import AgentConfig, SacAeAgent
+from sitl.rl.buffer import FrameReplayBuffer
+from sitl.rl.vae import train_vae
+from sitl.train import parse_args
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def test_buffer_rebuilds_stacks_from_frames_stored_once():
+    buf = FrameReplayBuffer(capacity=50, num_agents=2, frames=3, height=2, width=2, state_dim=6, action_dim=3)
+    frame = lambda v: np.full((1, 2, 2), v, dtype=np.float32)  # noqa: E731
+    buf.start_episodes(np.array([0, 1]), np.concatenate([frame(1), frame(101)]))
+    for t in range(2, 6):
+        buf.add(np.array([0, 1]), np.zeros((2, 6)), np.zeros((2, 3)), np.full(2, t), np.concatenate([frame(t), frame(100 + t)]),
+                np.zeros((2, 6)), np.array([False, t == 5]))
+    batch = buf.sample(200, torch.device("cpu"))
+    for depth, next_depth, reward, not_done in zip(batch["depth"], batch["next_depth"], batch["reward"], batch["not_done"]):
+        t = int(reward)
+        offset = 0 if depth[0, 0, 0] < 100 else 100
+        # obs = frames t-3..t-1 (the first frame repeated at the start), next = t-2..t
+        expected = [max(1, s) + offset for s in (t - 3, t - 2, t - 1)]
+        assert depth[:, 0, 0].tolist() == expected
+        assert next_depth[:, 0, 0].tolist() == expected[1:] + [t + offset]
+        assert not_done.item() == (0.0 if (offset == 100 and t == 5) else 1.0)
+    # One frame per transition plus one per episode start: 10 frames, not 10 x 6.
+    assert buf._next_frame == 10
+
+
+def test_buffer_memory_is_small_for_the_default_run():
+    buf = FrameReplayBuffer(20_000, 128, 3, 32, 32, 6, 3)
+    assert buf.nbytes < 90 * 2**20
+
+
+@pytest.mark.parametrize("method", ["sac_ae", "cnn", "drq"])
+def test_every_method_updates_its_networks(method):
+    torch.manual_seed(0)
+    cam = CameraSpec(width=16, height=16)
+    agent = SacAeAgent(AgentConfig(method=method, hidden_dim=32), cam, DEFAULT_ACTION_SPEC)
+    buf = FrameReplayBuffer(200, 4, 3, 16, 16, 6, 3)
+    rng = np.random.default_rng(0)
+    buf.start_episodes(np.arange(4), rng.uniform(0, 20, (4, 16, 16)))
+    for _ in range(20):
+        buf.add(np.arange(4), rng.normal(size=(4, 6)), rng.uniform(-1, 1, (4, 3)), rng.normal(size=4),
+                rng.uniform(0, 20, (4, 16, 16)), rng.normal(size=(4, 6)), np.zeros(4, bool))
+    conv_before = agent.critic.encoder.convs[0].weight.detach().clone()
+    actor_before = agent.actor.trunk[0].weight.detach().clone()
+    for _ in range(4):
+        info = agent.update(buf.sample(16, agent.device))
+    assert all(np.isfinite(v) for v in info.values())
+    assert not torch.equal(conv_before, agent.critic.encoder.convs[0].weight)
+    assert not torch.equal(actor_before, agent.actor.trunk[0].weight)
+    # The actor's convolutions are the critic's (tied), the target's are a lagging copy.
+    assert agent.actor.encoder.convs[0].weight is agent.critic.encoder.convs[0].weight
+    assert not torch.equal(agent.critic_target.encoder.convs[0].weight, agent.critic.encoder.convs[0].weight)
+    assert ("losses/reconstruction" in info) == (method == "sac_ae")
+
+
+def test_vae_learns_and_freezes():
+    rng = np.random.default_rng(0)
+    images = np.full((256, 3, 16, 16), 20.0, dtype=np.float32)
+    for img in images:  # a box of random depth at a random place
+        r, c = rng.integers(0, 12, 2)
+        img[:, r:r + 4, c:c + 4] = rng.uniform(2, 10)
+    encoder, losses = train_vae(images, 20.0, latent_dim=8, epochs=6, batch_size=64)
+    assert losses[-1] < 0.7 * losses[0]
+    assert not any(p.requires_grad for p in encoder.parameters())
+    agent = SacAeAgent(AgentConfig(method="vae", hidden_dim=32, latent_dim=8), CameraSpec(width=16, height=16),
+                       DEFAULT_ACTION_SPEC, vae_encoder=encoder)
+    assert agent.act(images[:2], np.zeros((2, 6)), explore=False).shape == (2, 3)
+
+
+def test_presets_and_flags():
+    cfg, agent_cfg, resume = parse_args([])
+    assert cfg.preset == "fast" and cfg.method == "sac_ae" and cfg.scenario == "random" and cfg.num_uavs == 8
+    assert agent_cfg.critic_tau == 0.01 and agent_cfg.encoder_tau == 0.05 and agent_cfg.hidden_dim == 1024
+    paper, _, _ = parse_args(["--preset", "paper"])
+    assert (paper.replay_capacity, paper.max_episodes, paper.updates_per_episode, paper.batch_size) == (20000, 200, 400, 128)
+    assert paper.num_worlds == 1 and paper.total_updates == 0
+    override, _, _ = parse_args(["--preset", "paper", "--max-episodes", "3"])
+    assert override.max_episodes == 3 and override.updates_per_episode == 400
+    _, cnn, _ = parse_args(["--method", "cnn", "--critic-lr", "3e-4"])
+    assert cnn.method == "cnn" and cnn.critic_lr == 3e-4
+
+
+def _train_cmd(run_dir, *extra):
+    return [sys.executable, "-m", "sitl.train", "--run-dir", str(run_dir), "--num-uavs", "2", "--num-worlds", "2",
+            "--image-size", "16", "--hidden-dim", "32", "--batch-size", "16", "--init-steps", "20",
+            "--eval-every-updates", "0", "--final-eval-episodes", "2", "--max-episode-steps", "40", *extra]
+
+
+def _env():
+    return {**os.environ, "PYTHONPATH": str(REPO)}
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--num-uavs", "0"], "num_uavs must be >= 1"),
+    (["--method", "ppo"], "unknown method 'ppo'"),
+    (["--density", "-2"], "density must be > 0"),
+    (["--batch-size", "many"], "invalid int value"),
+])
+def test_bad_command_line_values(tmp_path, args, message):
+    out = subprocess.run([sys.executable, "-m", "sitl.train", "--run-dir", str(tmp_path / "r"), *args],
+                         capture_output=True, text=True, env=_env(), cwd=tmp_path)
+    assert out.returncode == 2 and message in out.stderr
+
+
+def test_run_directory_is_never_overwritten_and_sigkill_resumes(tmp_path):
+    run_dir = tmp_path / "run"
+    proc = subprocess.Popen(_train_cmd(run_dir, "--total-updates", "100000", "--checkpoint-every-s", "2"),
+                            env=_env(), cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    ckpt = run_dir / "checkpoint.pt"
+    deadline = time.time() + 120
+    while not ckpt.exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.5)
+    time.sleep(3)  # let it write at least one more checkpoint
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert ckpt.exists(), proc.stderr.read()
+    saved = torch.load(ckpt, weights_only=False)["counters"]
+    assert saved["updates"] > 0
+
+    again = subprocess.run(_train_cmd(run_dir, "--total-updates", "10"), capture_output=True, text=True,
+                           env=_env(), cwd=tmp_path)
+    assert again.returncode == 2 and "already exists" in again.stderr
+
+    # Resume with a finite budget: edit the saved config's budget to end soon after the checkpoint.
+    config = json.loads((run_dir / "config.json").read_text())
+    config["train"]["total_updates"] = saved["updates"] + 20
+    (run_dir / "config.json").write_text(json.dumps(config))
+    resumed = subprocess.run([sys.executable, "-m", "sitl.train", "--resume", str(run_dir)], capture_output=True,
+                             text=True, env=_env(), cwd=tmp_path, timeout=300)
+    assert resumed.returncode == 0, resumed.stderr
+    assert f"resumed from {ckpt}: {saved['updates']} updates" in resumed.stderr
+    final = json.loads((run_dir / "final_eval.json").read_text())
+    assert final["updates"] == saved["updates"] + 20
+    assert (run_dir / "policy.pt").stat().st_size > 0 and (run_dir / "learning_curve.png").exists()
