@@ -1,15 +1,22 @@
-"""``companion``: the onboard process's command line.
+"""``companion``: the onboard process that flies a swarmnav policy through PX4 or ArduPilot.
 
-This release ships the observation and action contract shared with the simulator;
-``companion --describe`` prints it as JSON. The MAVLink flight loop
-(``companion --connect udp:14540 --model policy.pt``) is not part of this release yet:
-asking for it fails with a clear message instead of pretending to fly.
+    companion --connect udp:14540 --model policy.pt --camera realsense --goal 20,0,-6
+
+Start-up is fail-fast and in this order, each with a clear error and exit status: load and
+validate the policy file (3), start the depth camera (4), open the MAVLink link and wait for
+the autopilot's heartbeat (5). Then (READY for systemd) it streams hold setpoints and waits
+for the pilot to select OFFBOARD (PX4) or GUIDED (ArduPilot); ``--arm --takeoff ALT``
+automates arming, takeoff and the mode switch (SITL and tests). The goal can be changed in
+flight with SET_POSITION_TARGET_LOCAL_NED sent to component 191 (see docs/companion.md).
+
+``companion --describe`` prints the observation/action contract as JSON.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from dataclasses import asdict
 
@@ -23,22 +30,224 @@ def describe() -> dict:
         "depth": {**DEFAULT_CAMERA_SPEC.to_dict(), "units": "metres, planar", "order": "oldest frame first"},
         "state": list(STATE_NAMES),
         "action": asdict(DEFAULT_ACTION_SPEC),
+        "setpoint": {"message": "SET_POSITION_TARGET_LOCAL_NED", "coordinate_frame": 8, "type_mask": 1479},
+        "goal_update": {"message": "SET_POSITION_TARGET_LOCAL_NED", "target_component": 191,
+                        "coordinate_frame": 1, "fields": "x, y, z (local NED, m)"},
     }
 
 
-def main(argv: list[str] | None = None) -> int:
+# --------------------------------------------------------------------------- argument types
+
+
+def _goal(text: str):
+    import numpy as np
+
+    parts = text.split(",")
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"goal must be N,E,D in metres (local NED), got {text!r}") from None
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(f"goal must be three finite numbers N,E,D in metres, got {text!r}")
+    return np.asarray(values)
+
+
+def _positive(name: str, upper: float = math.inf):
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be a number, got {text!r}") from None
+        if not (0 < value <= upper):
+            raise argparse.ArgumentTypeError(f"{name} must be > 0{'' if upper == math.inf else f' and <= {upper:g}'}, got {text!r}")
+        return value
+    return parse
+
+
+def _connection(text: str) -> str:
+    from companion.mavlink_link import normalize_connection
+
+    try:
+        normalize_connection(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+    return text
+
+
+def _camera(text: str) -> str:
+    from companion.depth_sources import parse_camera_spec
+
+    try:
+        parse_camera_spec(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+    return text
+
+
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="companion", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--describe", action="store_true", help="print the observation/action contract as JSON")
-    parser.add_argument("--connect", help="MAVLink connection (flight loop not in this release)")
-    parser.add_argument("--model", help="policy file (flight loop not in this release)")
+    parser.add_argument("--describe", action="store_true", help="print the observation/action contract as JSON and exit")
+    link = parser.add_argument_group("link")
+    link.add_argument("--connect", type=_connection, metavar="CONN",
+                      help="MAVLink connection: udp:14540 (listen, PX4 SITL's onboard port), udpin:HOST:PORT, "
+                           "udpout:HOST:PORT, tcp:HOST:PORT, /dev/ttyTHS1,921600")
+    link.add_argument("--heartbeat-timeout", type=_positive("--heartbeat-timeout"), default=10.0, metavar="S",
+                      help="give up if no autopilot heartbeat arrives within S seconds (default 10)")
+    link.add_argument("--link-timeout", type=_positive("--link-timeout"), default=2.0, metavar="S",
+                      help="declare the link lost after S seconds without a heartbeat (default 2)")
+    link.add_argument("--signing-key", metavar="FILE",
+                      help="MAVLink 2 signing key (32 bytes or 64 hex characters): sign everything, refuse unsigned input")
+    link.add_argument("--stream-rate", type=_positive("--stream-rate", 200), default=50.0, metavar="HZ",
+                      help="odometry rate requested from the autopilot (default 50 Hz)")
+    flight = parser.add_argument_group("flight")
+    flight.add_argument("--model", metavar="PATH", help="policy file (TorchScript with policy.json metadata)")
+    flight.add_argument("--camera", type=_camera, default="realsense", metavar="SOURCE",
+                        help="depth source: realsense[:WxH@FPS] (default), sitl:PORT, replay:PATH[,loop]")
+    flight.add_argument("--goal", type=_goal, metavar="N,E,D", help="goal in local NED metres (altitude is -D)")
+    flight.add_argument("--arm", action="store_true",
+                        help="arm, take off and switch to OFFBOARD/GUIDED automatically (SITL and tests; needs --takeoff)")
+    flight.add_argument("--takeoff", type=_positive("--takeoff", 100), metavar="ALT",
+                        help="take-off altitude in metres above home for --arm")
+    flight.add_argument("--land-on-arrival", action="store_true", help="land once within 0.5 m of the goal")
+    flight.add_argument("--exit-on-arrival", action="store_true",
+                        help="exit 0 once arrived (and landed with --land-on-arrival), non-zero on any failure")
+    flight.add_argument("--timeout", type=_positive("--timeout"), metavar="S", help="exit 7 if not arrived within S seconds")
+    flight.add_argument("--no-camera-sync", action="store_true",
+                        help="do not phase-lock the control ticks to depth frame arrivals")
+    output = parser.add_argument_group("output")
+    output.add_argument("--log", default="-", metavar="PATH",
+                        help="JSON-lines log of every control step and event (default '-': stdout)")
+    output.add_argument("--record", metavar="PATH", help="write a flight recording (depth + state + action)")
+    return parser
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = build_parser()
     args = parser.parse_args(argv)
+    if args.describe:
+        return args
+    if not args.connect:
+        parser.error("--connect is required (e.g. --connect udp:14540)")
+    if not args.model:
+        parser.error("--model is required (a policy file, e.g. models/policy.pt)")
+    if args.arm and args.takeoff is None:
+        parser.error("--arm needs --takeoff ALT (the altitude to climb to if the vehicle is on the ground)")
+    if args.takeoff is not None and not args.arm:
+        parser.error("--takeoff only applies with --arm")
+    if args.signing_key:
+        from companion.mavlink_link import load_signing_key
+
+        try:
+            load_signing_key(args.signing_key)
+        except ValueError as err:
+            parser.error(f"--signing-key: {err}")
+    return args
+
+
+# --------------------------------------------------------------------------- main
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
     if args.describe:
         print(json.dumps(describe(), indent=2))
         return 0
-    print("companion: the MAVLink flight loop is not part of this release yet; "
-          "`companion --describe` prints the observation/action contract", file=sys.stderr)
-    return 2
+    from companion.flightlog import FlightLog
+
+    try:
+        stream = sys.stdout if args.log == "-" else open(args.log, "a", buffering=1)  # noqa: SIM115
+    except OSError as err:
+        print(f"companion: error: cannot open the log {args.log}: {err.strerror}", file=sys.stderr)
+        return 1
+    log = FlightLog(stream)
+    try:
+        return _fly(args, log)
+    finally:
+        log.close()
+
+
+def _fly(args: argparse.Namespace, log) -> int:
+    from companion.runtime import ExitCode
+
+    def fail(code: ExitCode, message: str) -> int:
+        log.event("exit", f"error: {message}", level="error", code=int(code), reason=message)
+        return int(code)
+
+    # 1. The model: the contract is checked before anything else is touched.
+    import numpy as np
+    import torch
+
+    torch.set_num_threads(1)  # one inference thread: predictable latency on a small computer
+    try:
+        torch.set_num_interop_threads(1)
+    except RuntimeError:
+        pass
+    from companion.policy import PolicyFileError, load_policy
+
+    try:
+        policy = load_policy(args.model)
+    except PolicyFileError as err:
+        return fail(ExitCode.BAD_MODEL, f"cannot use the model: {err}")
+    blank_depth = np.full((1, policy.camera.frames, policy.camera.height, policy.camera.width),
+                          policy.camera.max_range_m, np.float32)
+    blank_state = np.zeros((1, len(STATE_NAMES)), np.float32)
+    for _ in range(20):  # let TorchScript's profiling executor settle before the first real step
+        policy.act(blank_depth, blank_state)
+    log.event("model", f"model {args.model}: {policy.camera.width}x{policy.camera.height}x{policy.camera.frames} depth, "
+              f"{policy.camera.hfov_deg:g} deg, control period {policy.control_period_s:g} s",
+              model=args.model, metadata={k: v for k, v in policy.metadata.items() if k != "provenance"})
+
+    # 2. The camera.
+    from companion.depth_sources import DepthSourceError, open_depth_source
+
+    try:
+        depth = open_depth_source(args.camera, policy.camera)
+        depth.start()
+    except DepthSourceError as err:
+        return fail(ExitCode.CAMERA, f"cannot start the camera: {err}")
+
+    # 3. The recording (if asked for), then the link.
+    from companion.mavlink_link import AutopilotLink, LinkError, load_signing_key
+    from companion.recording import FlightRecorder
+
+    link = None
+    recorder = None
+    try:
+        if args.record:
+            try:
+                recorder = FlightRecorder(args.record, policy.camera, policy.control_period_s, args.model)
+            except OSError as err:
+                return fail(ExitCode.ERROR, f"cannot write the recording {args.record}: {err.strerror}")
+        key = load_signing_key(args.signing_key) if args.signing_key else None  # checked by parse_args
+        link = AutopilotLink(args.connect, signing_key=key)
+        try:
+            link.open()
+            hb = link.wait_for_autopilot(args.heartbeat_timeout)
+        except LinkError as err:
+            return fail(ExitCode.LINK, str(err))
+        log.event("link", f"connected to {hb.kind.value.upper()} (system {hb.sysid}) on {link.connection}: "
+                  f"mode {hb.mode}, {'armed' if hb.armed else 'disarmed'}"
+                  f"{', MAVLink 2 signing on' if key else ''}",
+                  autopilot=hb.kind.value, sysid=hb.sysid, mode=hb.mode, armed=hb.armed, signing=key is not None)
+
+        from companion.runtime import Companion, CompanionConfig
+        from companion.sdnotify import SystemdNotifier
+
+        config = CompanionConfig(goal_ned=args.goal, arm=args.arm, takeoff_alt_m=args.takeoff,
+                                 land_on_arrival=args.land_on_arrival, exit_on_arrival=args.exit_on_arrival,
+                                 timeout_s=args.timeout, link_timeout_s=args.link_timeout,
+                                 stream_rate_hz=args.stream_rate, camera_sync=not args.no_camera_sync)
+        notifier = SystemdNotifier()
+        companion = Companion(policy, depth, link, config, log, recorder, notifier)
+        notifier.ready(f"model, camera and link up ({hb.kind.value}, system {hb.sysid})")
+        return int(companion.run())
+    finally:
+        if recorder is not None:
+            recorder.close()
+        if link is not None:
+            link.close()
+        depth.close()
 
 
 if __name__ == "__main__":

@@ -89,8 +89,10 @@ def test_vae_learns_and_freezes():
 def test_presets_and_flags():
     cfg, agent_cfg, resume = parse_args([])
     assert cfg.preset == "fast" and cfg.method == "sac_ae" and cfg.scenario == "random" and cfg.num_uavs == 8
-    assert agent_cfg.critic_tau == 0.01 and agent_cfg.encoder_tau == 0.05 and agent_cfg.hidden_dim == 1024
-    paper, _, _ = parse_args(["--preset", "paper"])
+    assert agent_cfg.critic_tau == 0.01 and agent_cfg.encoder_tau == 0.05
+    assert (agent_cfg.hidden_dim, agent_cfg.init_temperature, agent_cfg.n_step) == (256, 0.01, 5)
+    paper, paper_agent, _ = parse_args(["--preset", "paper"])
+    assert (paper_agent.hidden_dim, paper_agent.init_temperature, paper_agent.n_step) == (1024, 0.1, 1)
     assert (paper.replay_capacity, paper.max_episodes, paper.updates_per_episode, paper.batch_size) == (20000, 200, 400, 128)
     assert paper.num_worlds == 1 and paper.total_updates == 0
     override, _, _ = parse_args(["--preset", "paper", "--max-episodes", "3"])
@@ -151,3 +153,25 @@ def test_run_directory_is_never_overwritten_and_sigkill_resumes(tmp_path):
     final = json.loads((run_dir / "final_eval.json").read_text())
     assert final["updates"] == saved["updates"] + 20
     assert (run_dir / "policy.pt").stat().st_size > 0 and (run_dir / "learning_curve.png").exists()
+
+
+def test_n_step_returns_follow_each_agent_and_stop_at_episode_ends():
+    buf = FrameReplayBuffer(capacity=64, num_agents=2, frames=3, height=1, width=1, state_dim=6, action_dim=3, seed=1)
+    frame = lambda *v: np.asarray(v, dtype=np.float32).reshape(-1, 1, 1)  # noqa: E731
+    buf.start_episodes(np.array([0, 1]), frame(0, 100))
+    for t in range(1, 6):  # agent 1 terminates at t = 3, agent 0 runs on (a time-out is not terminal)
+        agents = np.array([0, 1]) if t <= 3 else np.array([0])
+        rewards = np.array([t, 100 + t][: len(agents)], dtype=float)
+        terminated = np.array([False, t == 3][: len(agents)])
+        buf.add(agents, np.zeros((len(agents), 6)), np.zeros((len(agents), 3)), rewards,
+                frame(*[t, 100 + t][: len(agents)]), np.full((len(agents), 6), t, dtype=float), terminated)
+    batch = buf.sample(400, torch.device("cpu"), n_step=3, gamma=0.5)
+    for r, disc, nxt_state, nxt_depth in zip(batch["reward"][:, 0], batch["discount"][:, 0], batch["next_state"][:, 0],
+                                             batch["next_depth"][:, -1, 0, 0]):
+        if r < 100:  # agent 0, transition t0: rewards t0, t0+1, t0+2 while they exist (up to t = 5)
+            t0 = next(t for t in range(1, 6) if abs(r - sum(0.5**k * (t + k) for k in range(min(3, 6 - t)))) < 1e-4)
+            steps = min(3, 6 - t0)
+            assert disc == pytest.approx(0.5**steps) and nxt_state == t0 + steps - 1 and nxt_depth == t0 + steps - 1
+        else:  # agent 1 stops at its terminal transition t = 3: no bootstrap after it
+            t0 = next(t for t in range(1, 4) if abs(r - sum(0.5**k * (100 + t + k) for k in range(4 - t))) < 1e-4)
+            assert disc == 0.0 and nxt_state == 3 and nxt_depth == 103

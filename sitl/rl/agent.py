@@ -56,6 +56,7 @@ class AgentConfig:
     decoder_latent_lambda: float = field(default=1e-6, metadata={"help": "eq. 8: lambda_z"})
     decoder_weight_lambda: float = field(default=1e-7, metadata={"help": "eq. 8: lambda_phi (L2 on decoder weights)"})
     decoder_update_freq: int = field(default=1, metadata={"help": "reference train.py"})
+    n_step: int = field(default=1, metadata={"help": "n-step returns (1: the paper's one-step SAC target)"})
     drq_pad: int = field(default=2, metadata={"help": "drq: random shift of up to this many pixels"})
 
 
@@ -159,13 +160,16 @@ class SacAeAgent(nn.Module):
         return np.clip((action - mid) / half, -1.0, 1.0)
 
     # ------------------------------------------------------------------ updates
-    def update_critic(self, pixels, state, action, reward, next_pixels, next_state, not_done) -> dict:
-        """Eqs. 5-6: regress both Q-functions on the soft Bellman target of the target critic."""
+    def update_critic(self, pixels, state, action, reward, next_pixels, next_state, discount) -> dict:
+        """Eqs. 5-6: regress both Q-functions on the soft Bellman target of the target critic.
+
+        ``discount`` is gamma (gamma^n for n-step returns), 0 after a terminal step.
+        """
         with torch.no_grad():
             next_action, next_log_prob, _ = self.actor.sample(next_pixels, next_state)
             target_q1, target_q2 = self.critic_target(next_pixels, next_state, next_action)
             target_v = torch.min(target_q1, target_q2) - self.alpha.detach() * next_log_prob
-            target_q = reward + not_done * self.config.discount * target_v
+            target_q = reward + discount * target_v
         q1, q2 = self.critic(pixels, state, action)
         loss = F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q)
         self.critic_optimizer.zero_grad(set_to_none=True)
@@ -228,7 +232,7 @@ class SacAeAgent(nn.Module):
         if cfg.method == "drq":
             pixels, next_pixels = random_shift(pixels, cfg.drq_pad), random_shift(next_pixels, cfg.drq_pad)
         info = self.update_critic(pixels, state, batch["action"], batch["reward"], next_pixels, next_state,
-                                  batch["not_done"])
+                                  batch["discount"])
         if self.updates % cfg.actor_update_freq == 0:
             info |= self.update_actor_and_alpha(pixels, state)
         if self.updates % cfg.critic_target_update_freq == 0:

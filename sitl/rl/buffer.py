@@ -34,10 +34,17 @@ class FrameReplayBuffer:
         self.action = np.zeros((capacity, action_dim), dtype=np.float32)
         self.reward = np.zeros((capacity, 1), dtype=np.float32)
         self.not_done = np.zeros((capacity, 1), dtype=np.float32)
+        # Links to the same agent's next transition, for n-step returns. A link holds the
+        # stamp (insertion count) of its target so that an overwritten row is not followed.
+        self.stamp = np.full(capacity, -1, dtype=np.int64)
+        self.successor = np.full(capacity, -1, dtype=np.int64)
+        self.successor_stamp = np.full(capacity, -2, dtype=np.int64)
         self.size = 0
         self._next = 0
         self._next_frame = 0
+        self._inserted = 0
         self.agent_stack = np.zeros((num_agents, frames), dtype=np.int64)  # each agent's current obs frames
+        self.agent_last_row = np.full(num_agents, -1, dtype=np.int64)  # its previous transition this episode
         self.rng = np.random.default_rng(seed)
 
     @property
@@ -58,6 +65,7 @@ class FrameReplayBuffer:
             return
         idx = self._store_frames(first_frames)
         self.agent_stack[agents] = idx[:, None]
+        self.agent_last_row[agents] = -1
 
     def add(self, agents: np.ndarray, state: np.ndarray, action: np.ndarray, reward: np.ndarray,
             next_frames: np.ndarray, next_state: np.ndarray, terminated: np.ndarray) -> None:
@@ -79,23 +87,53 @@ class FrameReplayBuffer:
         self.next_state[rows] = next_state
         self.not_done[rows, 0] = 1.0 - terminated.astype(np.float32)
         self.agent_stack[agents] = np.concatenate([self.agent_stack[agents, 1:], new_frames[:, None]], axis=1)
+        stamps = self._inserted + np.arange(count)
+        self.stamp[rows] = stamps
+        self.successor[rows] = -1
+        previous = self.agent_last_row[agents]
+        linked = previous >= 0
+        self.successor[previous[linked]] = rows[linked]
+        self.successor_stamp[previous[linked]] = stamps[linked]
+        self.agent_last_row[agents] = np.where(terminated, -1, rows)
+        self._inserted += count
         self._next = (self._next + count) % self.capacity
         self.size = min(self.size + count, self.capacity)
 
-    def sample(self, batch_size: int, device: torch.device) -> dict[str, torch.Tensor]:
-        """A uniform batch; depth comes back as float32 metres [B, k, H, W]."""
+    def sample(self, batch_size: int, device: torch.device, n_step: int = 1, gamma: float = 0.99) -> dict[str, torch.Tensor]:
+        """A uniform batch; depth comes back as float32 metres [B, k, H, W].
+
+        With ``n_step > 1`` each transition is extended along its agent's episode by up to
+        ``n_step - 1`` further transitions: ``reward`` is the discounted sum and
+        ``discount`` is ``gamma^m`` (0 after a terminal step) for the ``m`` steps taken.
+        """
         rows = self.rng.integers(0, self.size, size=batch_size)
-        frames = torch.from_numpy(self.frame_store[self.frame_index[rows]].astype(np.float32)).to(device)
+        last = rows.copy()
+        reward = self.reward[rows, 0].astype(np.float64)
+        factor = np.ones(batch_size)
+        extending = np.ones(batch_size, dtype=bool)
+        for _ in range(n_step - 1):
+            nxt = self.successor[last]
+            extending &= (nxt >= 0) & (self.not_done[last, 0] > 0)
+            extending &= self.stamp[np.maximum(nxt, 0)] == self.successor_stamp[last]
+            if not extending.any():
+                break
+            factor = np.where(extending, factor * gamma, factor)
+            last = np.where(extending, nxt, last)
+            reward += np.where(extending, factor * self.reward[last, 0], 0.0)
+        discount = factor * gamma * self.not_done[last, 0]
         k = self.frames_per_obs
-        as_tensor = lambda a: torch.from_numpy(a[rows]).to(device)  # noqa: E731
+        obs_frames = self.frame_store[self.frame_index[rows, :k]]
+        next_frames = self.frame_store[self.frame_index[last, 1:]]
+        to = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)).to(device)  # noqa: E731
         return {
-            "depth": frames[:, :k],
-            "next_depth": frames[:, 1:],
-            "state": as_tensor(self.state),
-            "action": as_tensor(self.action),
-            "reward": as_tensor(self.reward),
-            "next_state": as_tensor(self.next_state),
-            "not_done": as_tensor(self.not_done),
+            "depth": to(obs_frames),
+            "next_depth": to(next_frames),
+            "state": to(self.state[rows]),
+            "action": to(self.action[rows]),
+            "reward": to(reward[:, None]),
+            "next_state": to(self.next_state[last]),
+            "not_done": to(self.not_done[last]),
+            "discount": to(discount[:, None]),
         }
 
     def state_dict(self) -> dict:

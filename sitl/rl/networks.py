@@ -60,12 +60,13 @@ class StateFeatures(nn.Module):
     def __init__(self) -> None:
         super().__init__()
         self.register_buffer("velocity_scale", torch.tensor(VELOCITY_SCALE, dtype=torch.float32))
+        self.goal_distance_scale_m = GOAL_DISTANCE_SCALE_M
 
     def forward(self, state: torch.Tensor) -> torch.Tensor:
         goal = state[:, 0:3]
         distance = torch.linalg.vector_norm(goal, dim=1, keepdim=True)
         direction = goal / torch.clamp(distance, min=1e-6)
-        scaled = torch.clamp(distance / GOAL_DISTANCE_SCALE_M, max=2.0)
+        scaled = torch.clamp(distance / self.goal_distance_scale_m, max=2.0)
         return torch.cat([direction, scaled, state[:, 3:6] / self.velocity_scale], dim=1)
 
 

@@ -1,0 +1,412 @@
+"""Depth cameras behind one interface, converted to exactly what the policy's metadata says.
+
+Three sources (``--camera``):
+
+* ``sitl:PORT`` or ``sitl:HOST:PORT`` — the frames ``python -m sitl.vehicle`` renders,
+  one UDP datagram each (format: :mod:`companion.depth_wire`); the companion listens.
+* ``realsense`` or ``realsense:WIDTHxHEIGHT@FPS`` — an Intel RealSense through
+  ``pyrealsense2`` (optional extra ``swarmnav[realsense]``): z16 pixels times the device's
+  depth scale, zeros are "no data", not obstacles at 0 m.
+* ``replay:PATH`` or ``replay:PATH,loop`` — the depth frames of a flight recording
+  (:mod:`companion.recording`) at their recorded timing.
+
+Every frame goes through :class:`DepthConverter`: cropped to the policy's horizontal field
+of view and aspect (:func:`companion.observation.crop_to_hfov`), min-pooled over valid
+pixels to the policy's resolution (:func:`companion.observation.min_pool_depth`) and
+checked (:func:`companion.observation.validate_depth_frame`) — the code the simulator
+uses. A frame that cannot be converted becomes a :class:`DepthFault` with the reason, which
+the control loop answers with a hold.
+
+Sources never block: the control loop waits on :meth:`DepthSource.fileno` (or wakes at
+:meth:`DepthSource.next_due_s`) and calls :meth:`DepthSource.poll`.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import socket
+import struct
+import threading
+import time
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from companion.depth_wire import MAX_DATAGRAM, decode_frame
+from companion.observation import DepthFrameError, crop_to_hfov, min_pool_depth, validate_depth_frame
+from companion.spec import CameraSpec
+
+_SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux value; Python does not export it
+
+
+class DepthSourceError(RuntimeError):
+    """A depth source that cannot be opened or has failed for good."""
+
+
+@dataclass
+class DepthFrame:
+    """A frame ready for the policy: float32 [H, W] planar metres in the policy's layout."""
+
+    depth_m: np.ndarray
+    arrival_s: float  # time.monotonic() at which it reached this computer
+    seq: int
+    source_stamp_us: int | None = None
+
+
+@dataclass
+class DepthFault:
+    """A frame that arrived but cannot be used (malformed, wrong size, dead sensor...)."""
+
+    reason: str
+    arrival_s: float
+
+
+class DepthConverter:
+    """Turns any camera's planar depth image into the policy's input frame.
+
+    Args:
+        camera: the policy's camera (from its metadata).
+    """
+
+    def __init__(self, camera: CameraSpec) -> None:
+        self.camera = camera
+
+    def convert(self, depth_m: np.ndarray, source_hfov_deg: float) -> np.ndarray:
+        """Return float32 [H, W] for the policy; raise :class:`DepthFrameError` if impossible."""
+        raw = np.asarray(depth_m)
+        if raw.ndim != 2:
+            raise DepthFrameError(f"depth frame must be 2-D [H, W], got shape {raw.shape}")
+        if not np.issubdtype(raw.dtype, np.floating):
+            raise DepthFrameError(f"depth frame must be floating-point metres, got dtype {raw.dtype}")
+        if not np.any(np.isfinite(raw)):
+            # Checked before pooling, which would turn an all-NaN frame into "all clear".
+            raise DepthFrameError("depth frame has no finite pixel (dead sensor)")
+        cam = self.camera
+        if raw.shape == (cam.height, cam.width) and abs(source_hfov_deg - cam.hfov_deg) < 1e-3:
+            return validate_depth_frame(raw, cam)
+        cropped = crop_to_hfov(raw, source_hfov_deg, cam)
+        pooled = min_pool_depth(cropped, cam.height, cam.width, cam.max_range_m)
+        return validate_depth_frame(pooled, cam)
+
+
+def z16_to_metres(z16: np.ndarray, depth_scale_m: float) -> np.ndarray:
+    """A RealSense z16 image (uint16) in metres; 0 (no data) stays 0 and is invalid downstream."""
+    z16 = np.asarray(z16)
+    if z16.dtype != np.uint16:
+        raise DepthFrameError(f"z16 frame must be uint16, got {z16.dtype}")
+    return z16.astype(np.float32) * np.float32(depth_scale_m)
+
+
+class DepthSource(ABC):
+    """A depth camera as the control loop sees it."""
+
+    name: str = "depth"
+
+    @abstractmethod
+    def start(self) -> None:
+        """Open the device or socket; raise :class:`DepthSourceError` with the reason if impossible."""
+
+    def fileno(self) -> int | None:
+        """A descriptor that becomes readable when frames wait, or None."""
+        return None
+
+    def next_due_s(self) -> float | None:
+        """Monotonic time at which :meth:`poll` has something to return, for timer-driven sources."""
+        return None
+
+    @abstractmethod
+    def poll(self, now_s: float) -> list[DepthFrame | DepthFault]:
+        """Everything that arrived since the last call, oldest first (never blocks)."""
+
+    def close(self) -> None:
+        """Release the device or socket."""
+
+
+# --------------------------------------------------------------------------- SITL
+
+
+class SitlDepthSource(DepthSource):
+    """Frames from ``python -m sitl.vehicle`` over loopback UDP (see :mod:`companion.depth_wire`).
+
+    Arrival times are the kernel's receive timestamps (``SO_TIMESTAMPNS``), so latency
+    figures include time a datagram spent queued while the loop was busy.
+    """
+
+    def __init__(self, host: str, port: int, camera: CameraSpec) -> None:
+        self.host, self.port = host, port
+        self.name = f"sitl:{host}:{port}"
+        self.converter = DepthConverter(camera)
+        self.sock: socket.socket | None = None
+        self.frames_superseded = 0  # frames that arrived together with a newer one
+
+    def start(self) -> None:
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sock.bind((self.host, self.port))
+        except OSError as err:
+            sock.close()
+            raise DepthSourceError(f"cannot listen for SITL depth frames on {self.host}:{self.port}: {err}") from err
+        sock.setblocking(False)
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+        except OSError:
+            pass  # fall back to user-space arrival times
+        self.sock = sock
+
+    def fileno(self) -> int | None:
+        return self.sock.fileno() if self.sock else None
+
+    def poll(self, now_s: float) -> list[DepthFrame | DepthFault]:
+        if self.sock is None:
+            return []
+        received: list[tuple[bytes, float]] = []
+        mono_now, wall_now = time.monotonic(), time.time()
+        while True:
+            try:
+                data, ancdata, _flags, _addr = self.sock.recvmsg(MAX_DATAGRAM + 1, 64)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError:
+                break
+            arrival = mono_now
+            for level, kind, payload in ancdata:
+                if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(payload) >= 16:
+                    sec, nsec = struct.unpack_from("qq", payload)
+                    arrival = min(mono_now, mono_now - (wall_now - (sec + nsec * 1e-9)))
+            received.append((data, arrival))
+        out: list[DepthFrame | DepthFault] = []
+        for index, (data, arrival) in enumerate(received):
+            last = index == len(received) - 1
+            try:
+                wire = decode_frame(data)
+                if not last:
+                    self.frames_superseded += 1  # a newer datagram follows: not worth converting
+                    continue
+                depth = self.converter.convert(wire.depth_m, wire.hfov_deg)
+            except DepthFrameError as err:
+                out.append(DepthFault(f"malformed depth frame: {err}", arrival))
+                continue
+            out.append(DepthFrame(depth, arrival, wire.seq, wire.stamp_us))
+        return out
+
+    def close(self) -> None:
+        if self.sock is not None:
+            self.sock.close()
+            self.sock = None
+
+
+# --------------------------------------------------------------------------- replay
+
+
+class ReplayDepthSource(DepthSource):
+    """The depth frames of a flight recording, played at their recorded timing."""
+
+    def __init__(self, path: str, camera: CameraSpec, loop: bool = False) -> None:
+        self.path, self.loop = path, loop
+        self.name = f"replay:{path}"
+        self.converter = DepthConverter(camera)
+        self._records = None
+        self._offsets: np.ndarray | None = None
+        self._hfov_deg = camera.hfov_deg
+        self._t0 = 0.0
+        self._index = 0
+
+    def start(self) -> None:
+        from companion.recording import RecordingError, read_recording
+
+        try:
+            header, records = read_recording(self.path)
+        except (OSError, RecordingError) as err:
+            raise DepthSourceError(f"cannot replay {self.path}: {err}") from err
+        if len(records) == 0:
+            raise DepthSourceError(f"cannot replay {self.path}: the recording holds no frame")
+        self._records = records
+        self._hfov_deg = float(header["camera"]["hfov_deg"])
+        t = records["t_mono_s"]
+        self._offsets = t - t[0]
+        self._t0 = time.monotonic()
+        self._index = 0
+
+    def _period_s(self) -> float:
+        offsets = self._offsets
+        return float(offsets[-1] + (np.median(np.diff(offsets)) if len(offsets) > 1 else 0.1))
+
+    def next_due_s(self) -> float | None:
+        if self._offsets is None or self._index >= len(self._offsets):
+            return None
+        return self._t0 + float(self._offsets[self._index])
+
+    def poll(self, now_s: float) -> list[DepthFrame | DepthFault]:
+        if self._records is None:
+            return []
+        out: list[DepthFrame | DepthFault] = []
+        due = None
+        while self._index < len(self._offsets) and self._t0 + self._offsets[self._index] <= now_s:
+            due = self._index
+            self._index += 1
+            if self._index == len(self._offsets) and self.loop:
+                self._t0 += self._period_s()
+                self._index = 0
+        if due is not None:
+            record = self._records[due]
+            try:
+                depth = self.converter.convert(np.array(record["depth_m"]), self._hfov_deg)
+            except DepthFrameError as err:
+                out.append(DepthFault(f"malformed depth frame in recording: {err}", now_s))
+            else:
+                out.append(DepthFrame(depth, now_s, int(record["frame_seq"]), None))
+        return out
+
+
+# --------------------------------------------------------------------------- RealSense
+
+
+class RealSenseDepthSource(DepthSource):
+    """An Intel RealSense depth stream through ``pyrealsense2`` (optional dependency).
+
+    A background thread owns the device (``wait_for_frames`` blocks) and hands the newest
+    frame to the control loop through a one-slot mailbox, waking it with a pipe.
+    """
+
+    def __init__(self, camera: CameraSpec, width: int = 848, height: int = 480, fps: int = 30) -> None:
+        self.width, self.height, self.fps = width, height, fps
+        self.name = f"realsense:{width}x{height}@{fps}"
+        self.converter = DepthConverter(camera)
+        self._pipeline = None
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._mailbox: list[DepthFrame | DepthFault] = []
+        self._wake_r, self._wake_w = -1, -1
+        self.depth_scale_m = 0.001
+        self.hfov_deg = 87.0
+
+    def start(self) -> None:
+        try:
+            import pyrealsense2 as rs  # noqa: PLC0415 - optional extra
+        except ImportError as err:
+            raise DepthSourceError("the realsense camera needs pyrealsense2: pip install 'swarmnav[realsense]'") from err
+        pipeline = rs.pipeline()
+        config = rs.config()
+        config.enable_stream(rs.stream.depth, self.width, self.height, rs.format.z16, self.fps)
+        try:
+            profile = pipeline.start(config)
+        except RuntimeError as err:
+            raise DepthSourceError(f"cannot start the RealSense depth stream {self.width}x{self.height}@{self.fps}: {err}") from err
+        self.depth_scale_m = float(profile.get_device().first_depth_sensor().get_depth_scale())
+        intrinsics = profile.get_stream(rs.stream.depth).as_video_stream_profile().get_intrinsics()
+        self.hfov_deg = math.degrees(2.0 * math.atan(intrinsics.width / (2.0 * intrinsics.fx)))
+        try:  # refuse a camera narrower than the policy now, not at the first frame
+            crop_to_hfov(np.zeros((intrinsics.height, intrinsics.width), np.float32), self.hfov_deg, self.converter.camera)
+        except DepthFrameError as err:
+            pipeline.stop()
+            raise DepthSourceError(f"RealSense cannot feed this policy: {err}") from err
+        self._pipeline = pipeline
+        self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_r, False)
+        os.set_blocking(self._wake_w, False)
+        self._thread = threading.Thread(target=self._run, name="realsense", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                frames = self._pipeline.wait_for_frames(1000)
+            except RuntimeError as err:  # timeout or device gone: the loop sees stale depth
+                item: DepthFrame | DepthFault = DepthFault(f"RealSense delivered no frame: {err}", time.monotonic())
+            else:
+                arrival = time.monotonic()
+                depth_frame = frames.get_depth_frame()
+                try:
+                    metres = z16_to_metres(np.asanyarray(depth_frame.get_data()), self.depth_scale_m)
+                    item = DepthFrame(self.converter.convert(metres, self.hfov_deg), arrival,
+                                      int(depth_frame.get_frame_number()), None)
+                except DepthFrameError as err:
+                    item = DepthFault(f"malformed depth frame: {err}", arrival)
+            with self._lock:
+                self._mailbox = [item]  # only the newest matters
+            try:
+                os.write(self._wake_w, b"x")
+            except BlockingIOError:
+                pass
+
+    def fileno(self) -> int | None:
+        return self._wake_r if self._wake_r >= 0 else None
+
+    def poll(self, now_s: float) -> list[DepthFrame | DepthFault]:
+        if self._wake_r >= 0:
+            try:
+                os.read(self._wake_r, 4096)
+            except BlockingIOError:
+                pass
+        with self._lock:
+            items, self._mailbox = self._mailbox, []
+        return items
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        if self._pipeline is not None:
+            try:
+                self._pipeline.stop()
+            except RuntimeError:
+                pass
+        for fd in (self._wake_r, self._wake_w):
+            if fd >= 0:
+                os.close(fd)
+        self._wake_r = self._wake_w = -1
+
+
+# --------------------------------------------------------------------------- factory
+
+CAMERA_FORMS = "sitl:PORT, sitl:HOST:PORT, realsense, realsense:WIDTHxHEIGHT@FPS, replay:PATH or replay:PATH,loop"
+
+
+def parse_camera_spec(text: str) -> tuple[str, dict]:
+    """Check a ``--camera`` value and split it into (kind, options); raise ValueError if invalid."""
+    kind, _, rest = text.partition(":")
+    if kind == "sitl":
+        parts = rest.split(":")
+        if len(parts) == 1:
+            host, port_text = "127.0.0.1", parts[0]
+        elif len(parts) == 2:
+            host, port_text = parts
+        else:
+            raise ValueError(f"invalid camera {text!r}: use sitl:PORT or sitl:HOST:PORT")
+        if not port_text.isdigit() or not 1 <= int(port_text) <= 65535:
+            raise ValueError(f"invalid camera {text!r}: the port must be a number in 1..65535")
+        return "sitl", {"host": host or "127.0.0.1", "port": int(port_text)}
+    if kind == "realsense":
+        if not rest:
+            return "realsense", {}
+        try:
+            size, _, fps = rest.partition("@")
+            width, height = (int(v) for v in size.lower().split("x"))
+            options = {"width": width, "height": height, "fps": int(fps) if fps else 30}
+        except ValueError:
+            raise ValueError(f"invalid camera {text!r}: use realsense:WIDTHxHEIGHT@FPS, e.g. realsense:848x480@30") from None
+        if min(options.values()) < 1:
+            raise ValueError(f"invalid camera {text!r}: width, height and fps must be positive")
+        return "realsense", options
+    if kind == "replay":
+        path, _, flag = rest.partition(",")
+        if not path or flag not in ("", "loop"):
+            raise ValueError(f"invalid camera {text!r}: use replay:PATH or replay:PATH,loop")
+        return "replay", {"path": path, "loop": flag == "loop"}
+    raise ValueError(f"invalid camera {text!r}: use one of {CAMERA_FORMS}")
+
+
+def open_depth_source(text: str, camera: CameraSpec) -> DepthSource:
+    """Build (not start) the source named by a ``--camera`` value for a policy's ``camera``."""
+    kind, options = parse_camera_spec(text)
+    if kind == "sitl":
+        return SitlDepthSource(options["host"], options["port"], camera)
+    if kind == "realsense":
+        return RealSenseDepthSource(camera, **options)
+    if not Path(options["path"]).is_file():
+        raise DepthSourceError(f"cannot replay {options['path']}: no such file")
+    return ReplayDepthSource(options["path"], camera, loop=options["loop"])

@@ -1,0 +1,801 @@
+"""The onboard flight procedure: connect, wait for health, stream setpoints, engage, fly, hand back.
+
+:class:`Companion` runs one thread that owns everything: the MAVLink link, the depth source
+and the policy. It sleeps in ``select`` until a message or a frame arrives or the next
+control tick is due, so frames are timestamped the moment they arrive and the tick fires
+on time. Each tick runs the handler of the current :class:`FlightPhase`:
+
+=======================  ====================================================================
+phase                    what the vehicle is doing / what the companion sends
+=======================  ====================================================================
+waiting_for_telemetry    link up, waiting for fresh odometry and depth; nothing sent
+streaming_hold           healthy; zero-velocity setpoints for 1.5 s (PX4 accepts OFFBOARD
+                         only with a setpoint stream running)
+waiting_for_pilot        hold setpoints until the pilot/GCS selects OFFBOARD (PX4) or GUIDED
+                         (ArduPilot); engaging happens on that change, never on our request
+arming                   (``--arm``) arming the vehicle
+switching_mode           (``--arm``) asking for OFFBOARD / GUIDED
+taking_off               (``--arm --takeoff``) PX4: climbing in OFFBOARD with velocity
+                         setpoints; ArduPilot: NAV_TAKEOFF in GUIDED, nothing streamed
+flying_to_goal           the policy flies; every step may become a hold (failsafes below)
+holding_at_goal          within 0.5 m of the goal: zero-velocity setpoints
+landing                  (``--land-on-arrival``) the autopilot lands; nothing sent
+landed                   disarmed on the ground
+handed_back              the pilot changed the mode: nothing sent, the mode is never requested back
+link_lost                no autopilot heartbeat: nothing sent, the autopilot's failsafe acts
+=======================  ====================================================================
+
+Failsafes while the policy flies (each step, logged with its reason): depth or odometry
+older than ``stale_periods`` control periods (1.5), the newest depth frame malformed, the
+policy output not finite or the policy raising -> zero-velocity hold; every command is
+clamped to the policy's action bounds. The loop also wakes when the inputs would go stale,
+so a stale-input hold goes out at once (an extra step between ticks), not at the next tick.
+
+The control clock ticks at the policy's control period. With ``camera_sync`` it slowly
+shifts its phase (at most 2 ms per tick) so that ticks fall just after depth frames arrive:
+a frame then waits a few ms instead of up to a whole period before the policy sees it.
+"""
+
+from __future__ import annotations
+
+import gc
+import math
+import select
+import signal
+import time
+from collections import deque
+from dataclasses import dataclass
+from enum import Enum, IntEnum
+
+import numpy as np
+
+from companion.depth_sources import DepthFault, DepthFrame, DepthSource
+from companion.flightlog import FlightLog, percentiles_ms, resident_memory_mb
+from companion.mavlink_link import AutopilotLink, PendingCommand, mavlink
+from companion.flight_modes import ARDUCOPTER_GUIDED, PX4_MAIN_MODE_OFFBOARD, AutopilotKind
+from companion.observation import DepthFrameStack, build_state
+from companion.policy import LoadedPolicy
+from companion.recording import FlightRecorder
+from companion.sdnotify import SystemdNotifier
+
+
+class ExitCode(IntEnum):
+    """The process's exit status (documented in docs/companion.md)."""
+
+    OK = 0  # arrived (--exit-on-arrival) or stopped by SIGTERM/SIGINT
+    ERROR = 1  # unexpected internal error
+    USAGE = 2  # bad command line (argparse)
+    BAD_MODEL = 3  # the policy file is missing or breaks the contract
+    CAMERA = 4  # the depth source cannot start
+    LINK = 5  # no autopilot heartbeat at start, or the link was lost (--exit-on-arrival)
+    PILOT_TOOK_OVER = 6  # the mode left OFFBOARD/GUIDED (--exit-on-arrival)
+    TIMEOUT = 7  # --timeout elapsed before arrival
+    ENGAGE_FAILED = 8  # --arm/--takeoff/landing refused or unanswered by the autopilot
+
+
+class FlightPhase(str, Enum):
+    """What the vehicle is doing, as seen by the companion."""
+
+    WAITING_FOR_TELEMETRY = "waiting_for_telemetry"
+    STREAMING_HOLD = "streaming_hold"
+    WAITING_FOR_PILOT = "waiting_for_pilot"
+    ARMING = "arming"
+    SWITCHING_MODE = "switching_mode"
+    TAKING_OFF = "taking_off"
+    FLYING_TO_GOAL = "flying_to_goal"
+    HOLDING_AT_GOAL = "holding_at_goal"
+    LANDING = "landing"
+    LANDED = "landed"
+    HANDED_BACK = "handed_back"
+    LINK_LOST = "link_lost"
+
+
+#: Phases in which the companion streams setpoints.
+_STREAMING = {FlightPhase.STREAMING_HOLD, FlightPhase.WAITING_FOR_PILOT, FlightPhase.ARMING,
+              FlightPhase.SWITCHING_MODE, FlightPhase.FLYING_TO_GOAL, FlightPhase.HOLDING_AT_GOAL}
+
+
+@dataclass
+class CompanionConfig:
+    """Flight options from the command line."""
+
+    goal_ned: np.ndarray | None = None
+    arm: bool = False
+    takeoff_alt_m: float | None = None
+    land_on_arrival: bool = False
+    exit_on_arrival: bool = False
+    timeout_s: float | None = None
+    arrival_radius_m: float = 0.5
+    link_timeout_s: float = 2.0
+    stale_periods: float = 1.5
+    hold_stream_s: float = 1.5  # PX4 wants >= 1 s of setpoints before OFFBOARD: keep a margin
+    stream_rate_hz: float = 50.0
+    camera_sync: bool = True
+    takeoff_timeout_s: float = 60.0
+
+
+class ControlClock:
+    """Fixed-rate ticks at ``period_s`` with deadline accounting, optionally phase-locked to frames.
+
+    Frames come from a camera clock at period P (a multiple of the control rate locks
+    exactly); their arrival times scatter *late* of that grid (scheduling, transport). The
+    lock estimates the grid's early edge and the spread of the lateness from the last 64
+    arrivals, and steers the ticks to ``early edge + p95 lateness + guard``: late enough that
+    ~95 % of frames are in before the tick, early enough that they wait only milliseconds.
+    The target delay follows the lateness estimate with a ~1 s time constant. The next tick
+    moves later by at most ``acquire_slew_s`` (a tick before its frame costs a frame period
+    of latency) and earlier by at most ``track_slew_s`` near the target (``acquire_slew_s``
+    far from it), so the lock itself adds little period jitter.
+    """
+
+    def __init__(self, period_s: float, start_s: float, lock: bool = True, guard_s: float = 0.0015,
+                 min_margin_s: float = 0.003, acquire_slew_s: float = 0.002, track_slew_s: float = 0.0005,
+                 gain: float = 0.5) -> None:
+        self.period_s = period_s
+        self.next_tick_s = start_s + period_s
+        self.lock = lock
+        self.guard_s, self.min_margin_s = guard_s, min_margin_s
+        self.acquire_slew_s, self.track_slew_s, self.gain = acquire_slew_s, track_slew_s, gain
+        self._arrivals: deque[float] = deque(maxlen=64)
+        self.missed_ticks = 0
+        self.margin_s = min_margin_s  # current target delay after the frame grid (for logs)
+        self.locked = False
+
+    def frame_arrived(self, arrival_s: float) -> None:
+        self._arrivals.append(arrival_s)
+
+    def frame_period_s(self) -> float | None:
+        if len(self._arrivals) < 8:
+            return None
+        return float(np.median(np.diff(np.asarray(self._arrivals))))
+
+    def _phase_error_s(self, scheduled: float) -> float | None:
+        """How far (s, wrapped to +-P/2) the scheduled tick is from where the lock wants it."""
+        frame_period = self.frame_period_s()
+        if not frame_period or not 1e-3 < frame_period <= 1.2 * self.period_s:
+            return None
+        arrivals = np.asarray(self._arrivals)
+        newest = arrivals[-1]
+        if scheduled - newest > 2.0 * frame_period:
+            return None  # frames stopped: nothing to lock to
+        phases = (arrivals - newest + frame_period / 2.0) % frame_period - frame_period / 2.0
+        edge = float(np.percentile(phases, 5))  # the camera grid, before transport delays
+        lateness = float(np.percentile(phases - edge, 95))
+        target = float(np.clip(lateness + self.guard_s, self.min_margin_s, 0.4 * frame_period))
+        self.margin_s += 0.1 * (target - self.margin_s)  # ~1 s to follow: one late frame must not jerk the ticks
+        error = scheduled - (newest + edge + self.margin_s)
+        return (error + frame_period / 2.0) % frame_period - frame_period / 2.0
+
+    def advance(self, now_s: float) -> float:
+        """Schedule the tick after the one due now; return the correction applied (s)."""
+        scheduled = self.next_tick_s
+        correction = 0.0
+        error = self._phase_error_s(scheduled) if self.lock else None
+        if error is not None:
+            self.locked = abs(error) < 0.001
+            # A tick early of its frame gets the previous one (a whole frame period old): move
+            # later quickly. A tick late of its frame only waits a little longer: move earlier slowly.
+            earlier = self.track_slew_s if abs(error) < 0.005 else self.acquire_slew_s
+            correction = float(np.clip(-self.gain * error, -earlier, self.acquire_slew_s))
+        following = scheduled + self.period_s + correction
+        if following <= now_s:  # overran whole periods: skip them instead of bursting
+            missed = math.floor((now_s - following) / self.period_s) + 1
+            self.missed_ticks += missed
+            following += missed * self.period_s
+        self.next_tick_s = following
+        return correction
+
+
+class Companion:
+    """The flight procedure around a policy, a depth source and an autopilot link.
+
+    ``model``, ``depth`` and ``link`` must already be loaded, started and connected (the
+    autopilot's heartbeat received): :meth:`run` flies and returns the exit code.
+    """
+
+    def __init__(self, policy: LoadedPolicy, depth: DepthSource, link: AutopilotLink, config: CompanionConfig,
+                 log: FlightLog, recorder: FlightRecorder | None = None,
+                 notifier: SystemdNotifier | None = None) -> None:
+        self.policy, self.depth, self.link, self.config = policy, depth, link, config
+        self.log, self.recorder = log, recorder
+        self.notifier = notifier or SystemdNotifier()
+        self.period_s = policy.control_period_s
+        self.stale_s = config.stale_periods * self.period_s
+        self.low = policy.action.low_array().astype(np.float64)
+        self.high = policy.action.high_array().astype(np.float64)
+        self.stack = DepthFrameStack(1, policy.camera)
+        self.goal_ned = None if config.goal_ned is None else np.asarray(config.goal_ned, dtype=np.float64)
+
+        self.phase = FlightPhase.WAITING_FOR_TELEMETRY
+        self.phase_since_s = time.monotonic()
+        self.exit_code: ExitCode | None = None
+        self.exit_reason = ""
+        self.step_index = 0
+        self.engaged = False  # the autopilot has followed us since we engaged
+        self.latest_frame: DepthFrame | None = None
+        self.latest_fault: DepthFault | None = None
+        self._last_pushed_s = -math.inf
+        self._last_hold_reason: str | None = None
+        self._last_mode: tuple[int, bool] | None = None
+        self._was_in_companion_mode_at_start: bool | None = None
+        self._pending: PendingCommand | None = None
+        self._sequence: list[FlightPhase] = []
+        self._last_setpoint: np.ndarray | None = None
+        self._last_setpoint_s = -math.inf
+        self._stop_signal: str | None = None
+        self._started_s = time.monotonic()
+        self._odometry_request: PendingCommand | None = None
+        self._fallback_requested = False
+        self.clock = ControlClock(self.period_s, self._started_s, lock=config.camera_sync)
+
+        # statistics
+        self.latency_s: deque[float] = deque(maxlen=200_000)
+        self.inference_s: deque[float] = deque(maxlen=200_000)
+        self.tick_late_s: deque[float] = deque(maxlen=200_000)
+        self.period_dev_s: deque[float] = deque(maxlen=200_000)
+        self.overruns = 0
+        self._last_tick_s: float | None = None
+        self._last_summary_s = time.monotonic()
+        self.holds = 0
+        self.policy_steps = 0
+
+    # ================================================================== main loop
+    def run(self) -> ExitCode:
+        """Fly until an exit condition (or SIGTERM/SIGINT); return the exit code."""
+        previous = {sig: signal.signal(sig, self._on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
+        # Start-up objects (torch, the model) never die: keep the cyclic collector off them, or a
+        # full collection walks them all and delays a tick by milliseconds.
+        gc.collect()
+        gc.freeze()
+        now = time.monotonic()
+        clock = self.clock = ControlClock(self.period_s, now, lock=self.config.camera_sync)
+        next_heartbeat_s = now
+        self.link.send_heartbeat()
+        self._request_streams()
+        self._event("phase", f"phase {self.phase.value}: waiting for fresh odometry and depth", to=self.phase.value)
+        try:
+            while self.exit_code is None:
+                now = time.monotonic()
+                deadline = min(clock.next_tick_s, next_heartbeat_s, self.depth.next_due_s() or math.inf,
+                               self._stale_deadline_s())
+                fds = [fd for fd in (self.link.fileno(), self.depth.fileno()) if fd is not None]
+                timeout = max(0.0, deadline - now)
+                if self.link.fileno() is None:
+                    timeout = min(timeout, 0.005)  # a link without a descriptor is polled
+                if timeout > 0:
+                    try:
+                        select.select(fds, [], [], timeout) if fds else time.sleep(timeout)
+                    except InterruptedError:
+                        pass
+                now = time.monotonic()
+                self._read_depth(now)
+                self._read_link(now)
+                if self._stop_signal is not None:
+                    self._finish(ExitCode.OK, f"stopping on {self._stop_signal}")
+                    break
+                if now >= next_heartbeat_s:
+                    self.link.send_heartbeat()
+                    next_heartbeat_s = max(next_heartbeat_s + 1.0, now + 0.5)
+                self.link.service_commands(now)
+                if now >= clock.next_tick_s:
+                    self._tick(now, clock)
+                elif now >= self._stale_deadline_s():
+                    self._tick(now, clock, extra=True)  # hold now, not at the next tick
+                elif (self.phase in _STREAMING and self._last_setpoint is not None
+                      and now - self._last_setpoint_s > 0.2):
+                    self._send(self._last_setpoint)  # keep PX4's > 2 Hz stream alive with long periods
+        except Exception as err:  # never leave the vehicle flying on our last command
+            self._hold_on_the_way_out()
+            self._event("exit", f"internal error: {type(err).__name__}: {err}", level="error")
+            self.exit_code, self.exit_reason = ExitCode.ERROR, f"{type(err).__name__}: {err}"
+            raise
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+            self._write_summary(final=True)
+            self.notifier.stopping(self.exit_reason or "stopping")
+        return self.exit_code
+
+    def _on_signal(self, signum, _frame) -> None:
+        self._stop_signal = signal.Signals(signum).name
+
+    def _request_streams(self) -> None:
+        rate = self.config.stream_rate_hz
+        if self.link.heartbeat.kind is AutopilotKind.PX4:
+            self._odometry_request = self.link.request_message_interval(mavlink.MAVLINK_MSG_ID_ODOMETRY, rate)
+        else:  # ArduPilot sends no ODOMETRY
+            self._request_fallback_streams()
+
+    # ================================================================== inputs
+    def _read_depth(self, now: float) -> None:
+        for item in self.depth.poll(now):
+            if isinstance(item, DepthFrame):
+                self.latest_frame, self.latest_fault = item, None
+                self.clock.frame_arrived(item.arrival_s)
+            else:
+                if self.latest_fault is None or self.latest_fault.reason != item.reason:
+                    self._event("depth_fault", item.reason, level="warning")
+                self.latest_fault = item
+
+    def _read_link(self, now: float) -> None:
+        events = self.link.receive(now)
+        for event in events:
+            if event.kind == "goal":
+                self._on_goal(event.detail)
+            elif event.kind == "refused_unsigned":
+                self._event("refused_unsigned", f"refused {event.detail['count']} unsigned message(s): "
+                            f"{', '.join(event.detail['messages'])}", level="warning", **event.detail)
+            elif event.kind == "statustext":
+                self._event("autopilot_text", f"autopilot: {event.detail['text']}", **event.detail)
+            elif event.kind == "odometry_frame":
+                self._event("odometry_frame", f"ignoring ODOMETRY: {event.detail['error']}; "
+                            "using LOCAL_POSITION_NED + ATTITUDE", level="warning")
+                self._request_fallback_streams()
+            elif event.kind == "io_error":
+                self._event("link", f"link I/O error: {event.detail['error']}", level="warning")
+        req = self._odometry_request
+        if req is not None and req.done and not req.accepted:
+            self._odometry_request = None
+            if req.result is not None:  # refused: ask for the ArduPilot-style pair instead
+                self._event("streams", f"{req.describe_failure()}; using LOCAL_POSITION_NED + ATTITUDE", level="warning")
+                self._request_fallback_streams()
+            else:  # unanswered: more requests would only delay the commands queued behind them
+                self._event("streams", f"{req.describe_failure()}; using the autopilot's default streams",
+                            level="warning")
+        hb = self.link.heartbeat
+        if hb is not None:
+            key = (hb.custom_mode, hb.armed)
+            if self._last_mode != key:
+                if self._last_mode is not None:
+                    self._event("mode", f"autopilot mode {hb.mode}, {'armed' if hb.armed else 'disarmed'}",
+                                mode=hb.mode, armed=hb.armed)
+                else:
+                    self._was_in_companion_mode_at_start = hb.in_companion_mode
+                self._last_mode = key
+
+    def _request_fallback_streams(self) -> None:
+        if self._fallback_requested:
+            return
+        self._fallback_requested = True
+        self.link.request_message_interval(mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, self.config.stream_rate_hz)
+        self.link.request_message_interval(mavlink.MAVLINK_MSG_ID_ATTITUDE, self.config.stream_rate_hz)
+
+    def _on_goal(self, detail: dict) -> None:
+        goal = np.asarray(detail["goal_ned"], dtype=np.float64)
+        if self.phase in (FlightPhase.LANDING, FlightPhase.LANDED, FlightPhase.HANDED_BACK, FlightPhase.LINK_LOST):
+            self._event("goal", f"goal {np.round(goal, 2).tolist()} ignored while {self.phase.value}", level="warning")
+            return
+        self.goal_ned = goal
+        text = f"goal set to N {goal[0]:.1f} E {goal[1]:.1f} D {goal[2]:.1f}"
+        self._event("goal", f"{text} (from system {detail['from'][0]}, {'signed' if detail['signed'] else 'unsigned'})",
+                    goal_ned=goal, sender=detail["from"], signed=detail["signed"])
+        self.link.send_statustext(mavlink.MAV_SEVERITY_INFO, f"companion: {text}")
+        if self.phase is FlightPhase.HOLDING_AT_GOAL:
+            self._set_phase(FlightPhase.FLYING_TO_GOAL, "new goal")
+
+    def _input_problem(self, now: float, need_depth: bool = True) -> str | None:
+        """Why the inputs cannot be trusted right now, or None."""
+        odom_age = self.link.odometry_age_s(now)
+        if odom_age > self.stale_s:
+            return "no odometry yet" if math.isinf(odom_age) else f"odometry stale ({odom_age * 1000:.0f} ms old)"
+        if not need_depth:
+            return None
+        if self.latest_fault is not None:
+            return self.latest_fault.reason
+        if self.latest_frame is None:
+            return "no depth frame yet"
+        depth_age = now - self.latest_frame.arrival_s
+        if depth_age > self.stale_s:
+            return f"depth stale ({depth_age * 1000:.0f} ms old: camera stopped?)"
+        return None
+
+    # ================================================================== the tick
+    def _stale_deadline_s(self) -> float:
+        """When the inputs the policy flies on go stale (inf unless it is flying on fresh ones)."""
+        if self.phase is not FlightPhase.FLYING_TO_GOAL or self._last_hold_reason is not None:
+            return math.inf
+        odom = self.link.odometry
+        if odom is None or self.latest_frame is None or self.latest_fault is not None:
+            return math.inf
+        return min(odom.received_s, self.latest_frame.arrival_s) + self.stale_s + 1e-4
+
+    def _tick(self, now: float, clock: ControlClock, extra: bool = False) -> None:
+        """One control step: at the scheduled time, or ``extra`` when inputs went stale between ticks."""
+        scheduled = clock.next_tick_s
+        self.step_index += 1
+        late = period = None
+        if not extra:
+            late = now - scheduled
+            period = None if self._last_tick_s is None else now - self._last_tick_s
+            self._last_tick_s = now
+            self.tick_late_s.append(max(late, 0.0))
+            if period is not None:
+                self.period_dev_s.append(abs(period - self.period_s))
+
+        info: dict = {}
+        command = self._run_phase(now, info)
+        sent_s = None
+        if command is not None:
+            sent_s = self._send(command)
+        frame = info.get("frame")
+        if info.get("policy_step") and sent_s is not None and frame is not None:
+            self.latency_s.append(sent_s - frame.arrival_s)
+        if not extra:
+            clock.advance(now)
+            if time.monotonic() > clock.next_tick_s:
+                self.overruns += 1
+
+        hold = info.get("hold")
+        if hold:
+            self.holds += 1
+        hb = self.link.heartbeat
+        odom = self.link.odometry
+        self.log.step(
+            step=self.step_index, phase=self.phase.value, mode=hb.mode if hb else None, armed=hb.armed if hb else None,
+            sent=command is not None, hold=hold, cmd=command, policy=info.get("policy"), clamped=info.get("clamped", False),
+            pos_ned=None if odom is None else odom.pos_ned, goal_ned=self.goal_ned,
+            dist_m=info.get("dist_m"),
+            depth_age_ms=None if self.latest_frame is None else (now - self.latest_frame.arrival_s) * 1000.0,
+            odom_age_ms=None if odom is None else (now - odom.received_s) * 1000.0,
+            frame_seq=None if frame is None else frame.seq,
+            frame_to_setpoint_ms=None if not (info.get("policy_step") and sent_s is not None and frame is not None)
+            else (sent_s - frame.arrival_s) * 1000.0,
+            inference_ms=None if info.get("inference_s") is None else info["inference_s"] * 1000.0,
+            tick_late_ms=None if late is None else late * 1000.0, period_ms=None if period is None else period * 1000.0,
+            extra=extra,
+        )
+        if self.recorder is not None and frame is not None and info.get("state") is not None:
+            self.recorder.write(t_wall_s=time.time(), t_mono_s=now, step=self.step_index, frame_seq=frame.seq,
+                                hold=bool(hold), depth_m=frame.depth_m, state=info["state"],
+                                action=command if command is not None else np.zeros(3),
+                                pos_ned_m=odom.pos_ned, yaw_rad=odom.yaw_rad)
+        self.notifier.watchdog(now)
+        if now - self._last_summary_s >= 10.0:
+            self._write_summary(final=False)
+
+    def _send(self, command: np.ndarray) -> float:
+        self.link.send_velocity_setpoint(command[0], command[1], command[2])
+        sent_s = time.monotonic()
+        self._last_setpoint, self._last_setpoint_s = command, sent_s
+        return sent_s
+
+    def _run_phase(self, now: float, info: dict) -> np.ndarray | None:
+        # Whole-flight conditions first: the link, the mode, the clock.
+        if self.phase is not FlightPhase.LINK_LOST and self.link.heartbeat_age_s(now) > self.config.link_timeout_s:
+            self._set_phase(FlightPhase.LINK_LOST, f"link lost: no heartbeat for {self.link.heartbeat_age_s(now):.1f} s; "
+                            "leaving it to the autopilot's failsafe", level="error")
+            if self.config.exit_on_arrival:
+                self._finish(ExitCode.LINK, "link to the autopilot lost")
+            return None
+        if self.engaged and self.phase not in (FlightPhase.LANDING, FlightPhase.LANDED, FlightPhase.HANDED_BACK,
+                                               FlightPhase.LINK_LOST):
+            hb = self.link.heartbeat
+            if not hb.in_companion_mode:
+                self.engaged = False
+                self._set_phase(FlightPhase.HANDED_BACK, f"pilot took over: mode {hb.mode}; stopped commanding "
+                                "(restart the companion to engage again)", level="warning")
+                if self.config.exit_on_arrival:
+                    self._finish(ExitCode.PILOT_TOOK_OVER, f"pilot took over (mode {hb.mode})")
+                return None
+        if (self.config.timeout_s is not None and now - self._started_s > self.config.timeout_s
+                and self.phase not in (FlightPhase.HOLDING_AT_GOAL, FlightPhase.LANDED)):
+            self._finish(ExitCode.TIMEOUT, f"not arrived within --timeout {self.config.timeout_s:g} s")
+            return self._hold_if_streaming()
+        handler = getattr(self, f"_phase_{self.phase.value}")
+        return handler(now, info)
+
+    def _hold_if_streaming(self) -> np.ndarray | None:
+        return np.zeros(3) if self.phase in _STREAMING else None
+
+    # ================================================================== phases
+    def _phase_waiting_for_telemetry(self, now: float, info: dict) -> np.ndarray | None:
+        problem = self._input_problem(now)
+        if problem is None:
+            self._set_phase(FlightPhase.STREAMING_HOLD, "odometry and depth are fresh: streaming hold setpoints")
+            return np.zeros(3)
+        info["hold"] = problem
+        return None
+
+    def _phase_streaming_hold(self, now: float, info: dict) -> np.ndarray | None:
+        problem = self._input_problem(now)
+        if problem is not None:  # do not offer a mode switch to a companion that cannot see
+            self._set_phase(FlightPhase.WAITING_FOR_TELEMETRY, f"stopped streaming: {problem}", level="warning")
+            return None
+        if now - self.phase_since_s >= self.config.hold_stream_s:
+            if self.config.arm:
+                self._start_engagement(now)
+            else:
+                hb = self.link.heartbeat
+                note = (f" (already in {hb.mode} at start: switch out and back to engage)"
+                        if hb.in_companion_mode else "")
+                self._set_phase(FlightPhase.WAITING_FOR_PILOT,
+                                f"ready: waiting for the pilot to select {self._companion_mode_name()}{note}")
+        return np.zeros(3)
+
+    def _phase_waiting_for_pilot(self, now: float, info: dict) -> np.ndarray | None:
+        hb = self.link.heartbeat
+        problem = self._input_problem(now)
+        if problem is not None:
+            self._set_phase(FlightPhase.WAITING_FOR_TELEMETRY, f"stopped streaming: {problem}", level="warning")
+            return None
+        entered = hb.in_companion_mode and not self._was_in_companion_mode_at_start
+        if not hb.in_companion_mode:
+            self._was_in_companion_mode_at_start = False  # from now on, a switch into it engages
+        if entered:
+            self._engage("pilot selected " + hb.mode)
+            return self._phase_flying_to_goal(now, info)
+        return np.zeros(3)
+
+    def _companion_mode_name(self) -> str:
+        return "OFFBOARD" if self.link.heartbeat.kind is AutopilotKind.PX4 else "GUIDED"
+
+    def _engage(self, why: str) -> None:
+        self.engaged = True
+        self._set_phase(FlightPhase.FLYING_TO_GOAL, f"engaged ({why}): flying to the goal")
+
+    def _airborne(self) -> bool:
+        odom = self.link.odometry
+        return odom is not None and -odom.pos_ned[2] > 0.5 and self.link.heartbeat.armed
+
+    def _start_engagement(self, now: float) -> None:
+        """Plan the --arm sequence for this autopilot and start it."""
+        hb = self.link.heartbeat
+        airborne = self._airborne()
+        if hb.kind is AutopilotKind.PX4:  # arm, OFFBOARD, climb in OFFBOARD
+            sequence = [] if hb.armed else [FlightPhase.ARMING]
+            sequence += [FlightPhase.SWITCHING_MODE]
+        else:  # GUIDED, arm, NAV_TAKEOFF
+            sequence = [FlightPhase.SWITCHING_MODE] + ([] if hb.armed else [FlightPhase.ARMING])
+        if not airborne and self.config.takeoff_alt_m is not None:
+            sequence.append(FlightPhase.TAKING_OFF)
+        self._sequence = sequence
+        self._next_in_sequence(now, "starting automatic engagement (--arm)")
+
+    def _next_in_sequence(self, now: float, why: str) -> None:
+        if not self._sequence:
+            self._engage(why)
+            return
+        phase = self._sequence.pop(0)
+        self._pending = None
+        hb = self.link.heartbeat
+        if phase is FlightPhase.ARMING:
+            self._pending = self.link.queue_command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1, label="arming")
+        elif phase is FlightPhase.SWITCHING_MODE:
+            main = PX4_MAIN_MODE_OFFBOARD if hb.kind is AutopilotKind.PX4 else ARDUCOPTER_GUIDED
+            self._pending = self.link.queue_command(mavlink.MAV_CMD_DO_SET_MODE,
+                                                    mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, main, 0,
+                                                    label=f"switch to {self._companion_mode_name()}")
+        elif phase is FlightPhase.TAKING_OFF:
+            self.engaged = hb.in_companion_mode
+            if hb.kind is AutopilotKind.ARDUPILOT:
+                self._pending = self.link.queue_command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, 0, 0,
+                                                        self.config.takeoff_alt_m, label="takeoff")
+        self._set_phase(phase, why)
+
+    def _command_failed(self, now: float) -> bool:
+        """True (and the process ends) if the engagement step's command failed or stalled."""
+        reason = None
+        if self._pending is not None and self._pending.done and not self._pending.accepted:
+            reason = self._pending.describe_failure()
+        elif self.phase in (FlightPhase.ARMING, FlightPhase.SWITCHING_MODE) and now - self.phase_since_s > 10.0:
+            reason = f"{self.phase.value}: the autopilot accepted but did not get there within 10 s"
+        if reason is None:
+            return False
+        self._event("engage", reason, level="error")
+        self._finish(ExitCode.ENGAGE_FAILED, reason)
+        return True
+
+    def _phase_arming(self, now: float, info: dict) -> np.ndarray | None:
+        if self._command_failed(now):
+            return self._hold_if_streaming()
+        if self.link.heartbeat.armed and self._pending is not None and self._pending.done:
+            self._next_in_sequence(now, "armed")
+        return self._hold_or_none(now, info)
+
+    def _phase_switching_mode(self, now: float, info: dict) -> np.ndarray | None:
+        if self._command_failed(now):
+            return self._hold_if_streaming()
+        hb = self.link.heartbeat
+        if hb.in_companion_mode and self._pending is not None and self._pending.done:
+            self.engaged = True
+            self._was_in_companion_mode_at_start = True
+            self._next_in_sequence(now, f"autopilot in {hb.mode}")
+        return self._hold_or_none(now, info)
+
+    def _hold_or_none(self, now: float, info: dict) -> np.ndarray | None:
+        """Hold setpoints during engagement (PX4 needs the stream; ArduPilot does not mind)."""
+        if self.phase not in _STREAMING:
+            return None
+        problem = self._input_problem(now, need_depth=False)
+        if problem is not None:
+            info["hold"] = problem
+        return np.zeros(3)
+
+    def _phase_taking_off(self, now: float, info: dict) -> np.ndarray | None:
+        odom = self.link.odometry
+        target = float(self.config.takeoff_alt_m)
+        if now - self.phase_since_s > self.config.takeoff_timeout_s:
+            self._finish(ExitCode.ENGAGE_FAILED, f"takeoff to {target:g} m not done within {self.config.takeoff_timeout_s:g} s")
+            return np.zeros(3) if self.link.heartbeat.kind is AutopilotKind.PX4 else None
+        if self.link.heartbeat.kind is AutopilotKind.ARDUPILOT:
+            if self._command_failed(now):
+                return None
+            if odom is not None and -odom.pos_ned[2] >= target - 0.2 and self._pending is not None and self._pending.done:
+                self.engaged = True
+                self._next_in_sequence(now, f"reached {-odom.pos_ned[2]:.1f} m")
+            return None  # ArduPilot's guided takeoff: a velocity setpoint would cancel it
+        problem = self._input_problem(now, need_depth=False)
+        if problem is not None:
+            info["hold"] = problem
+            return np.zeros(3)
+        altitude_error_m = target - (-odom.pos_ned[2])
+        if abs(altitude_error_m) < 0.2:
+            self._next_in_sequence(now, f"reached {-odom.pos_ned[2]:.1f} m")
+            return np.zeros(3)
+        # Climb in OFFBOARD with the policy's own vertical bound (a P law on altitude).
+        vel_down = float(np.clip(-1.0 * altitude_error_m, self.low[1], self.high[1]))
+        return np.array([0.0, vel_down, 0.0])
+
+    def _phase_flying_to_goal(self, now: float, info: dict) -> np.ndarray | None:
+        odom = self.link.odometry
+        if self.goal_ned is None:
+            info["hold"] = "no goal (send one with SET_POSITION_TARGET_LOCAL_NED to component 191)"
+            return self._hold(info)
+        if odom is not None and self.link.odometry_age_s(now) <= self.stale_s:
+            dist = float(np.linalg.norm(self.goal_ned - odom.pos_ned))
+            info["dist_m"] = dist
+            if dist <= self.config.arrival_radius_m:
+                return self._arrive(now, dist, info)
+        problem = self._input_problem(now)
+        if problem is not None:
+            info["hold"] = problem
+            return self._hold(info)
+        frame = self.latest_frame
+        info["frame"] = frame
+        # After a gap in depth, start the stack afresh (as at an episode start) rather than
+        # mixing frames from before the gap with new ones.
+        if now - self._last_pushed_s > self.stale_s:
+            self.stack.reset(frame.depth_m)
+        else:
+            self.stack.push(frame.depth_m)
+        self._last_pushed_s = now
+        state = build_state(odom.pos_ned[None], np.array([odom.yaw_rad]), odom.vel_ned[None],
+                            np.array([odom.yaw_rate_rad_s]), self.goal_ned[None])
+        info["state"] = state[0]
+        started = time.perf_counter()
+        try:
+            raw = np.asarray(self.policy.act(self.stack.frames, state), dtype=np.float64).reshape(-1)
+        except Exception as err:  # a TorchScript runtime error must not take the loop down
+            info["inference_s"] = time.perf_counter() - started
+            info["hold"] = f"policy raised {type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"
+            return self._hold(info)
+        info["inference_s"] = time.perf_counter() - started
+        self.inference_s.append(info["inference_s"])
+        info["policy"] = raw
+        if raw.shape != (3,) or not np.all(np.isfinite(raw)):
+            info["hold"] = f"policy output not finite: {np.round(raw, 3).tolist()}"
+            return self._hold(info)
+        command = np.clip(raw, self.low, self.high)
+        info["clamped"] = bool(np.any(command != raw))
+        info["policy_step"] = True
+        self.policy_steps += 1
+        self._note_hold(None)
+        return command
+
+    def _hold(self, info: dict) -> np.ndarray:
+        self._note_hold(info.get("hold"))
+        return np.zeros(3)
+
+    def _note_hold(self, reason: str | None) -> None:
+        """Log failsafe holds when they start, change reason, and end (not every step)."""
+        kind = None if reason is None else reason.split(" (")[0].split(":")[0]
+        last = None if self._last_hold_reason is None else self._last_hold_reason.split(" (")[0].split(":")[0]
+        if kind != last:
+            if reason is None:
+                self._event("failsafe", "failsafe cleared: the policy flies again", cleared=True)
+            else:
+                self._event("failsafe", f"HOLD (zero velocity): {reason}", level="warning", reason=reason)
+        self._last_hold_reason = reason
+
+    def _arrive(self, now: float, dist: float, info: dict) -> np.ndarray | None:
+        self._note_hold(None)
+        self._event("arrived", f"arrived: {dist:.2f} m from the goal {np.round(self.goal_ned, 2).tolist()}",
+                    dist_m=dist, goal_ned=self.goal_ned)
+        if self.config.land_on_arrival:
+            self._pending = self.link.queue_command(mavlink.MAV_CMD_NAV_LAND, 0, 0, 0, math.nan, 0, 0, 0, label="landing")
+            self._set_phase(FlightPhase.LANDING, "landing on arrival (--land-on-arrival)")
+            return np.zeros(3)  # one last hold; the land mode takes over
+        self._set_phase(FlightPhase.HOLDING_AT_GOAL, "holding at the goal")
+        if self.config.exit_on_arrival:
+            self._finish(ExitCode.OK, "arrived at the goal")
+        return np.zeros(3)
+
+    def _phase_holding_at_goal(self, now: float, info: dict) -> np.ndarray | None:
+        odom = self.link.odometry
+        if odom is not None and self.goal_ned is not None:
+            info["dist_m"] = float(np.linalg.norm(self.goal_ned - odom.pos_ned))
+        return np.zeros(3)
+
+    def _phase_landing(self, now: float, info: dict) -> np.ndarray | None:
+        hb = self.link.heartbeat
+        if self._pending is not None and self._pending.done and not self._pending.accepted:
+            reason = self._pending.describe_failure()
+            self._pending = None
+            self._event("landing", reason, level="error")
+            if self.config.exit_on_arrival:
+                self._finish(ExitCode.ENGAGE_FAILED, reason)
+            self._set_phase(FlightPhase.HOLDING_AT_GOAL, "landing refused: holding at the goal instead", level="warning")
+            return np.zeros(3)
+        if not hb.armed:
+            self._set_phase(FlightPhase.LANDED, "landed and disarmed")
+            if self.config.exit_on_arrival:
+                self._finish(ExitCode.OK, "arrived and landed")
+            return None
+        if not hb.landing and not hb.in_companion_mode and self._pending is not None and self._pending.done:
+            self._set_phase(FlightPhase.HANDED_BACK, f"pilot took over during landing: mode {hb.mode}", level="warning")
+            self.engaged = False
+            if self.config.exit_on_arrival:
+                self._finish(ExitCode.PILOT_TOOK_OVER, f"pilot took over during landing (mode {hb.mode})")
+        return None
+
+    def _phase_landed(self, now: float, info: dict) -> np.ndarray | None:
+        return None
+
+    def _phase_handed_back(self, now: float, info: dict) -> np.ndarray | None:
+        return None
+
+    def _phase_link_lost(self, now: float, info: dict) -> np.ndarray | None:
+        if self.link.heartbeat_age_s(now) <= self.config.link_timeout_s:
+            if self.engaged:
+                self.engaged = False
+                self._set_phase(FlightPhase.HANDED_BACK, "link back; not re-engaging on our own "
+                                "(restart the companion to fly again)", level="warning")
+            else:
+                self._set_phase(FlightPhase.WAITING_FOR_TELEMETRY, "link back")
+        return None
+
+    # ================================================================== bookkeeping
+    def _set_phase(self, phase: FlightPhase, why: str, level: str = "info") -> None:
+        old = self.phase
+        self.phase = phase
+        self.phase_since_s = time.monotonic()
+        self._event("phase", f"{phase.value}: {why}" if old is not phase else why, level=level,
+                    to=phase.value, **{"from": old.value})
+        self.notifier.status(f"{phase.value}: {why}"[:200])
+        if level in ("warning", "error"):
+            severity = mavlink.MAV_SEVERITY_WARNING if level == "warning" else mavlink.MAV_SEVERITY_ERROR
+            try:
+                self.link.send_statustext(severity, f"companion: {phase.value}")
+            except OSError:
+                pass
+
+    def _event(self, event: str, message: str, level: str = "info", **fields) -> None:
+        self.log.event(event, message, level=level, step=self.step_index, phase=self.phase.value, **fields)
+
+    def _finish(self, code: ExitCode, reason: str) -> None:
+        if self.exit_code is None:
+            self.exit_code, self.exit_reason = code, reason
+            self._hold_on_the_way_out()
+            self._event("exit", f"exit {int(code)} ({code.name}): {reason}", level="info" if code is ExitCode.OK else "error",
+                        code=int(code), reason=reason)
+
+    def _hold_on_the_way_out(self) -> None:
+        """Leave the vehicle stopped: a few zero-velocity setpoints before the stream ends."""
+        if self.phase not in _STREAMING or self.link.heartbeat is None:
+            return
+        try:
+            for _ in range(3):
+                self.link.send_velocity_setpoint(0.0, 0.0, 0.0)
+        except OSError:
+            pass
+
+    def _write_summary(self, final: bool) -> None:
+        self._last_summary_s = time.monotonic()
+        self.log.summary(
+            final=final, steps=self.step_index, policy_steps=self.policy_steps, holds=self.holds,
+            frame_to_setpoint_ms=percentiles_ms(self.latency_s), inference_ms=percentiles_ms(self.inference_s),
+            tick_late_ms=percentiles_ms(self.tick_late_s), period_jitter_ms=percentiles_ms(self.period_dev_s),
+            overruns=self.overruns, missed_ticks=self.clock.missed_ticks,
+            setpoints_sent=self.link.setpoints_sent, refused_unsigned=self.link.refused_unsigned,
+            phase=self.phase.value, **resident_memory_mb(),
+        )

@@ -1,0 +1,330 @@
+"""Simulated vehicles that speak MAVLink like PX4 SITL (or ArduCopter) — the companion's SITL.
+
+    python -m sitl.vehicle --n 2                       # PX4 flavour, ports 14540, 14541
+    python -m sitl.vehicle --n 1 --autopilot ardupilot
+
+Runs N vehicles in one simulated world (the simulator's dynamics backend, raycast depth
+camera and collision checks) in real time. Vehicle ``i`` (system id ``i + 1``):
+
+* speaks MAVLink 2 to its companion: it sends from an ephemeral local UDP port to
+  ``HOST:base-port + i`` (PX4 SITL's onboard port 14540 + i), where ``companion --connect
+  udp:14540`` listens, and takes the companion's messages on that local port;
+* optionally talks to a ground station the same way at ``HOST:gcs-port`` (QGroundControl's
+  14550; all vehicles share it), and routes messages between the two links;
+* sends its rendered depth frames to ``HOST:depth-port + i`` (format:
+  :mod:`companion.depth_wire`), where ``companion --camera sitl:<port>`` listens.
+
+What the autopilot does (modes, commands, failsafes, failure injection) is described in
+:mod:`sitl.mavlink_autopilot`. Events (modes, arming, commands, crashes, failures) and a
+status line per vehicle per second go to ``--log`` as JSON lines.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import select
+import signal
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from companion.flight_modes import AutopilotKind
+from companion.spec import CameraSpec
+from sitl.camera import DepthCamera
+from sitl.collision import uav_uav_collisions
+from sitl.depth_transport import DepthFrameSender
+from sitl.dynamics import DYNAMICS_NAMES, make_dynamics
+from sitl.mavlink_autopilot import Body, MavlinkUdpLink, SimAutopilot
+
+PHYSICS_DT_S = 0.02
+COLLISION_RADIUS_M = 0.3
+LANDED_CAMERA_HEIGHT_M = 0.15  # a landed quadrotor's camera is above its landing gear, not at z = 0
+HARD_LANDING_M_S = 2.0
+
+
+class EventLog:
+    """JSON lines with the UNIX time of each event."""
+
+    def __init__(self, stream) -> None:
+        self.stream = stream
+
+    def __call__(self, event: str, **fields) -> None:
+        record = {"t": round(time.time(), 4), "event": event, **fields}
+        try:
+            self.stream.write(json.dumps(record, default=_json_default) + "\n")
+            self.stream.flush()
+        except (OSError, ValueError):
+            pass
+
+
+def _json_default(value):
+    if isinstance(value, np.ndarray):
+        return value.round(3).tolist()
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    return str(value)
+
+
+class SimWorld:
+    """N simulated vehicles: dynamics, camera, collisions, and one autopilot each."""
+
+    def __init__(self, args: argparse.Namespace, log: EventLog) -> None:
+        n = args.n
+        self.n, self.args, self.log = n, args, log
+        self.dynamics = make_dynamics(args.dynamics, n)
+        start = np.asarray(args.start, dtype=np.float64)
+        starts = np.repeat(start[None], n, axis=0)
+        starts[:, 1] += np.arange(n) * args.spacing
+        self.dynamics.reset(np.arange(n), starts, np.full(n, math.radians(args.yaw_deg)))
+        self.camera_spec = CameraSpec(width=args.camera_size[0], height=args.camera_size[1], hfov_deg=args.hfov,
+                                      max_range_m=args.max_range)
+        self.camera = DepthCamera(self.camera_spec, supersample=args.supersample)
+        self.cylinders = np.asarray(args.cylinder, dtype=np.float64).reshape(1, -1, 5) if args.cylinder else None
+        self.boxes = np.asarray(args.box, dtype=np.float64).reshape(1, -1, 6) if args.box else None
+        self.sender = DepthFrameSender(args.host, args.depth_port, n, args.hfov, args.max_range)
+        key = None
+        if args.signing_key:
+            from companion.mavlink_link import load_signing_key
+
+            key = load_signing_key(args.signing_key)
+        kind = AutopilotKind(args.autopilot)
+        self.autopilots: list[SimAutopilot] = []
+        for i in range(n):
+            onboard = MavlinkUdpLink("onboard", (args.host, args.base_port + i), i + 1, key, link_id=1)
+            gcs = MavlinkUdpLink("gcs", (args.host, args.gcs_port), i + 1, key, link_id=2) if args.gcs_port else None
+            self.autopilots.append(SimAutopilot(i, kind, onboard, gcs, log, airborne=args.airborne,
+                                                odometry_child_frame=args.odometry_child_frame, camera=self.sender))
+        self.collided = np.zeros(n, dtype=bool)
+
+    def body(self, i: int) -> Body:
+        d = self.dynamics
+        return Body(d.pos_ned[i], d.vel_ned[i], float(d.yaw_rad[i]), float(d.yaw_rate_rad_s[i]))
+
+    def physics_step(self, now_s: float, dt_s: float) -> None:
+        """Advance every vehicle by ``dt_s`` under its autopilot's command."""
+        d = self.dynamics
+        cmds = np.zeros((self.n, 3))
+        active = np.zeros(self.n, dtype=bool)
+        for i, ap in enumerate(self.autopilots):
+            cmds[i], active[i] = ap.velocity_command(now_s, self.body(i))
+        prev = d.pos_ned.copy()
+        d.step(cmds, dt_s, active)
+        for i, ap in enumerate(self.autopilots):
+            if active[i] and not ap.airborne and d.pos_ned[i, 2] < -0.01:
+                ap.lifted_off()
+            if ap.airborne and d.pos_ned[i, 2] >= 0.0:
+                sink = d.vel_ned[i, 2]
+                d.pos_ned[i, 2] = 0.0
+                d.vel_ned[i] = 0.0
+                d.yaw_rate_rad_s[i] = 0.0
+                ap.touched_down(now_s)
+                if sink > HARD_LANDING_M_S:
+                    ap.crash(f"hit the ground at {sink:.1f} m/s")
+            if not active[i] and not ap.airborne:
+                d.vel_ned[i] = 0.0
+                d.yaw_rate_rad_s[i] = 0.0
+        flying = np.array([ap.airborne for ap in self.autopilots])
+        hits = uav_uav_collisions(prev, d.pos_ned, flying, self.n, COLLISION_RADIUS_M)
+        for i in np.flatnonzero(hits & ~self.collided):
+            self.autopilots[i].crash("collision with another vehicle")
+        self.collided |= hits
+        for i, ap in enumerate(self.autopilots):
+            ap.update(now_s, self.body(i))
+
+    def render_and_send(self) -> None:
+        d = self.dynamics
+        camera_ned = d.pos_ned.copy()
+        camera_ned[:, 2] = np.minimum(camera_ned[:, 2], -LANDED_CAMERA_HEIGHT_M)
+        depth = self.camera.render(camera_ned, d.yaw_rad, self.n, boxes=self.boxes, cylinders=self.cylinders)
+        for i in range(self.n):
+            self.sender.send(i, depth[i])
+
+    def status(self) -> None:
+        for i, ap in enumerate(self.autopilots):
+            self.log("status", vehicle=i, pos_ned=self.dynamics.pos_ned[i], vel_ned=self.dynamics.vel_ned[i],
+                     yaw_deg=round(math.degrees(float(self.dynamics.yaw_rad[i])), 1), mode=ap.mode, armed=ap.armed,
+                     airborne=ap.airborne, crashed=ap.crashed, setpoints=ap.setpoints_received,
+                     last_setpoint_t=None if not math.isfinite(ap.last_setpoint_s) else
+                     round(time.time() - (time.monotonic() - ap.last_setpoint_s), 4),
+                     frames_sent=int(self.sender.sent[i]), refused_unsigned=sum(l.refused_unsigned for l in ap.links))
+
+    def close(self) -> None:
+        for ap in self.autopilots:
+            for link in ap.links:
+                link.close()
+        self.sender.close()
+
+
+def run(world: SimWorld, duration_s: float | None, camera_hz: float) -> None:
+    """Real-time loop: wait for messages, step physics at 50 Hz, render at ``camera_hz``."""
+    stop: list[str] = []
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda signum, _frame: stop.append(signal.Signals(signum).name))
+    by_fd = {link.fileno(): (ap, link) for ap in world.autopilots for link in ap.links}
+    started = now = time.monotonic()
+    next_physics, next_camera, next_status = now, now, now + 1.0
+    camera_period = 1.0 / camera_hz
+    while not stop:
+        if duration_s is not None and now - started >= duration_s:
+            stop.append("duration")
+            break
+        timeout = max(0.0, min(next_physics, next_camera) - time.monotonic())
+        try:
+            readable, _, _ = select.select(list(by_fd), [], [], timeout)
+        except InterruptedError:
+            readable = []
+        now = time.monotonic()
+        for fd in readable:
+            ap, link = by_fd[fd]
+            for msg in link.receive():
+                ap.handle(link, msg, now)
+        if now >= next_physics:
+            steps = 0
+            while now >= next_physics and steps < 5:
+                world.physics_step(now, PHYSICS_DT_S)
+                next_physics += PHYSICS_DT_S
+                steps += 1
+            if now >= next_physics:  # more than 0.1 s behind: drop the backlog, stay real time
+                world.log("overrun", behind_s=round(now - next_physics, 3))
+                next_physics = now + PHYSICS_DT_S
+        if now >= next_camera:
+            world.render_and_send()
+            next_camera += camera_period
+            while next_camera <= now:  # fell behind: skip frames but keep the camera's time grid
+                next_camera += camera_period
+        for i, ap in enumerate(world.autopilots):
+            ap.send_telemetry(now, world.body(i))
+        if now >= next_status:
+            world.status()
+            next_status += 1.0
+    world.status()
+    world.log("stopped", reason=stop[0] if stop else "?")
+
+
+# --------------------------------------------------------------------------- command line
+
+
+def _floats(count: tuple[int, ...], name: str):
+    def parse(text: str) -> list[float]:
+        try:
+            values = [float(v) for v in text.split(",")]
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be comma-separated numbers, got {text!r}") from None
+        if len(values) not in count or not all(math.isfinite(v) for v in values):
+            raise argparse.ArgumentTypeError(f"{name} needs {' or '.join(map(str, count))} finite numbers, got {text!r}")
+        return values
+    return parse
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"camera size must be WIDTHxHEIGHT, got {text!r}") from None
+    if width < 1 or height < 1:
+        raise argparse.ArgumentTypeError(f"camera size must be positive, got {text!r}")
+    return width, height
+
+
+def _port(text: str) -> int:
+    if not text.isdigit() or not 0 <= int(text) <= 65535:
+        raise argparse.ArgumentTypeError(f"port must be a number in 0..65535, got {text!r}")
+    return int(text)
+
+
+def _positive_int(text: str) -> int:
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
+    return int(text)
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
+    if not value > 0 or not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text!r}")
+    return value
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="python -m sitl.vehicle", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--n", type=_positive_int, default=1, help="number of vehicles (default 1)")
+    parser.add_argument("--autopilot", choices=[k.value for k in AutopilotKind], default="px4",
+                        help="behave like PX4 (default) or ArduCopter")
+    parser.add_argument("--host", default="127.0.0.1", help="address of the companions and ground station (default 127.0.0.1)")
+    parser.add_argument("--base-port", type=_port, default=14540, help="companion i listens on base-port + i (default 14540)")
+    parser.add_argument("--depth-port", type=_port, default=14640, help="depth frames of vehicle i go to depth-port + i (default 14640)")
+    parser.add_argument("--gcs-port", type=_port, default=14550, help="ground-station port, 0 for none (default 14550)")
+    parser.add_argument("--start", type=_floats((3,), "--start"), default=[0.0, 0.0, 0.0], metavar="N,E,D",
+                        help="start of vehicle 0 in local NED metres (default 0,0,0: on the ground at home)")
+    parser.add_argument("--spacing", type=float, default=3.0, help="vehicle i starts i * spacing metres east of vehicle 0")
+    parser.add_argument("--yaw-deg", type=float, default=0.0, help="initial heading in degrees from north (default 0)")
+    parser.add_argument("--airborne", action="store_true", help="start armed and hovering at --start (needs D < -0.5)")
+    parser.add_argument("--dynamics", choices=DYNAMICS_NAMES, default="kinematic")
+    parser.add_argument("--camera-hz", type=_positive_float, default=30.0,
+                        help="depth frame rate (default 30; use a multiple of the policy's control rate)")
+    parser.add_argument("--camera-size", type=_size, default=(32, 32), metavar="WxH", help="rendered resolution (default 32x32)")
+    parser.add_argument("--hfov", type=float, default=90.0, help="horizontal field of view in degrees (default 90)")
+    parser.add_argument("--max-range", type=_positive_float, default=20.0, help="camera range in metres (default 20)")
+    parser.add_argument("--supersample", type=_positive_int, default=4, help="sub-rays per pixel side (default 4)")
+    parser.add_argument("--cylinder", type=_floats((3, 4), "--cylinder"), action="append", metavar="N,E,R[,H]",
+                        help="a vertical pole at N,E of radius R (and height H, default 30 m); repeatable")
+    parser.add_argument("--box", type=_floats((6,), "--box"), action="append", metavar="N,E,D,HN,HE,HD",
+                        help="an axis-aligned box: centre and half sizes in NED metres; repeatable")
+    parser.add_argument("--signing-key", metavar="FILE", help="MAVLink 2 signing key: sign all, refuse unsigned")
+    parser.add_argument("--odometry-child-frame", choices=("local_ned", "body_frd"), default="local_ned",
+                        help="ODOMETRY velocity frame: local_ned as PX4 1.14+, body_frd as PX4 up to 1.13")
+    parser.add_argument("--log", default="-", metavar="PATH", help="JSON-lines event log (default '-': stdout)")
+    parser.add_argument("--duration", type=_positive_float, metavar="S", help="stop after S seconds")
+    args = parser.parse_args(argv)
+    if args.airborne and args.start[2] > -0.5:
+        parser.error("--airborne needs a start altitude: --start N,E,D with D < -0.5 (altitude is -D)")
+    if not args.airborne and args.start[2] != 0.0:
+        parser.error("a vehicle on the ground starts at D = 0; use --airborne to start in the air")
+    if args.cylinder:
+        args.cylinder = [[c[0], c[1], c[2], -(c[3] if len(c) == 4 else 30.0), 0.0] for c in args.cylinder]
+    if args.signing_key:
+        from companion.mavlink_link import load_signing_key
+
+        try:
+            load_signing_key(args.signing_key)
+        except ValueError as err:
+            parser.error(f"--signing-key: {err}")
+    try:
+        CameraSpec(width=args.camera_size[0], height=args.camera_size[1], hfov_deg=args.hfov, max_range_m=args.max_range)
+    except ValueError as err:
+        parser.error(str(err))
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    stream = sys.stdout if args.log == "-" else open(Path(args.log), "a", buffering=1)  # noqa: SIM115
+    log = EventLog(stream)
+    world = SimWorld(args, log)
+    world.render_and_send()  # compile/load the camera kernel before announcing readiness
+    log("ready", n=args.n, autopilot=args.autopilot, dynamics=args.dynamics,
+        onboard_ports=[args.base_port + i for i in range(args.n)],
+        depth_ports=[args.depth_port + i for i in range(args.n)], gcs_port=args.gcs_port or None,
+        camera={"size": list(args.camera_size), "hfov_deg": args.hfov, "hz": args.camera_hz},
+        signing=bool(args.signing_key))
+    print(f"sitl.vehicle: {args.n} {args.autopilot} vehicle(s) up; companion i: --connect udp:{args.base_port}+i "
+          f"--camera sitl:{args.depth_port}+i", file=sys.stderr, flush=True)
+    try:
+        run(world, args.duration, args.camera_hz)
+    finally:
+        world.close()
+        if stream is not sys.stdout:
+            stream.close()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,273 @@
+"""End to end: the real ``companion`` process flies a real ``sitl.vehicle`` process over loopback.
+
+Flights to a goal 15 m away (PX4 and ArduPilot flavours), a goal sent at run time by a
+ground station through the vehicle's MAVLink routing, MAVLink 2 signing, and a depth-driven
+stop in front of an obstacle whose recording then replays through the companion. The
+scenarios start together (:class:`ScenarioPool`) so their real-time flights overlap.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import socket
+import time
+
+import numpy as np
+import pytest
+
+from companion.recording import read_recording
+from tests.companion_helpers import GroundStation, Rig, ScenarioPool, make_policy, scenario
+
+pytestmark = pytest.mark.timeout(150)
+
+LOW, HIGH = np.array([0.0, -0.5, -0.5]), np.array([2.0, 0.5, 0.5])
+
+
+def _start_px4_15m(rig: Rig, tmp) -> None:
+    rig.notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    rig.notify.bind(str(tmp / "notify.sock"))
+    rig.notify.setblocking(False)
+    rig.record = tmp / "flight.snrec"
+    # Facing east with PX4 <= 1.13's ODOMETRY (velocity in the body frame): a companion that
+    # ignored child_frame_id would see no forward speed at all.
+    rig.start_vehicle("--yaw-deg", "90", "--odometry-child-frame", "body_frd")
+    rig.start_companion(make_policy(tmp / "policy.pt"), "--goal", "0,15,-2", "--arm", "--takeoff", "2",
+                        "--exit-on-arrival", "--timeout", "90", "--record", str(rig.record),
+                        extra_env={"NOTIFY_SOCKET": str(tmp / "notify.sock"), "WATCHDOG_USEC": "1000000"})
+
+
+def _start_ardupilot_15m(rig: Rig, tmp) -> None:
+    rig.start_vehicle("--autopilot", "ardupilot")
+    rig.start_companion(make_policy(tmp / "policy.pt"), "--goal", "15,0,-2", "--arm", "--takeoff", "2",
+                        "--land-on-arrival", "--exit-on-arrival", "--timeout", "90")
+
+
+def _start_pilot_engages(rig: Rig, tmp) -> None:
+    rig.start_vehicle("--airborne", "--start", "0,0,-3")
+    rig.start_companion(make_policy(tmp / "policy.pt"), "--goal", "4,0,-3", "--exit-on-arrival", "--timeout", "90")
+
+
+def _start_gcs_goal(rig: Rig, tmp) -> None:
+    rig.start_vehicle("--airborne", "--start", "0,0,-3")
+    rig.start_companion(make_policy(tmp / "policy.pt"), "--arm", "--takeoff", "3", "--exit-on-arrival", "--timeout", "90")
+
+
+def _start_signing(rig: Rig, tmp) -> None:
+    rig.key = os.urandom(32)
+    rig.key_file = tmp / "mavlink.key"
+    rig.key_file.write_text(rig.key.hex())
+    rig.start_vehicle("--airborne", "--start", "0,0,-3", "--signing-key", str(rig.key_file))
+    rig.start_companion(make_policy(tmp / "policy.pt"), "--arm", "--takeoff", "3", "--exit-on-arrival", "--timeout", "90",
+                        "--signing-key", str(rig.key_file))
+
+
+def _start_unsigned_companion(rig: Rig, tmp) -> None:
+    key_file = tmp / "mavlink.key"
+    key_file.write_text(os.urandom(32).hex())
+    rig.start_vehicle("--airborne", "--start", "0,0,-3", "--signing-key", str(key_file))
+    rig.start_companion(make_policy(tmp / "policy.pt"), "--goal", "8,0,-3", "--arm", "--takeoff", "3",
+                        "--exit-on-arrival", "--timeout", "90")
+
+
+def _start_obstacle(rig: Rig, tmp) -> None:
+    rig.policy = make_policy(tmp / "brake.pt", brake_depth_m=4.0)
+    rig.record = tmp / "brake.snrec"
+    rig.start_vehicle("--airborne", "--start", "0,0,-3", "--cylinder", "10,0,0.5")
+    rig.start_companion(rig.policy, "--goal", "20,0,-3", "--arm", "--takeoff", "3", "--exit-on-arrival",
+                        "--timeout", "10", "--record", str(rig.record))
+
+
+@pytest.fixture(scope="module")
+def rigs(request, tmp_path_factory):
+    pool = ScenarioPool(request, tmp_path_factory, {
+        "px4_15m": _start_px4_15m, "ardupilot_15m": _start_ardupilot_15m, "pilot_engages": _start_pilot_engages,
+        "gcs_goal": _start_gcs_goal,
+        "signing": _start_signing, "unsigned_companion": _start_unsigned_companion, "obstacle": _start_obstacle})
+    yield pool
+    pool.stop_all()
+
+
+def _steps(rig: Rig) -> list[dict]:
+    return [r for r in rig.companion_records() if r["kind"] == "step"]
+
+
+def _events(rig: Rig, name: str) -> list[dict]:
+    return [r for r in rig.companion_records() if r["kind"] == "event" and r["event"] == name]
+
+
+def _final_vehicle_status(rig: Rig, after_t: float, timeout_s: float = 3.0) -> dict:
+    """The vehicle's first status line written after ``after_t`` (UNIX time)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        lines = [r for r in rig.vehicle_records() if r["event"] == "status" and r["t"] > after_t]
+        if lines:
+            return lines[0]
+        time.sleep(0.1)
+    raise AssertionError("the vehicle wrote no status line")
+
+
+@scenario("px4_15m")
+def test_px4_flies_15_m_to_its_goal_with_systemd_notify_and_a_recording(rigs):
+    rig = rigs["px4_15m"]
+    code = rig.wait_companion(120)
+    assert code == 0, rig.procs.stderr("companion")[-3000:]
+    status = _final_vehicle_status(rig, time.time())
+    messages = []
+    while True:
+        try:
+            messages.append(rig.notify.recv(4096).decode())
+        except BlockingIOError:
+            break
+    rig.notify.close()
+    rig.procs.stop_all()
+
+    (arrived,) = _events(rig, "arrived")
+    assert arrived["dist_m"] <= 0.5
+    assert math.dist(status["pos_ned"], [0.0, 15.0, -2.0]) < 1.0  # the vehicle's own truth
+    assert not status["crashed"]
+    modes = [r for r in rig.vehicle_records() if r["event"] == "mode"]
+    assert modes[0]["mode"] == "OFFBOARD" and "from 1/191" in modes[0]["why"]  # engaged by the companion
+    steps = _steps(rig)
+    sent = np.array([s["cmd"] for s in steps if s["sent"]])
+    assert len(sent) > 50 and np.all(sent >= LOW - 1e-6) and np.all(sent <= HIGH + 1e-6)
+    assert sum(1 for s in steps if s["phase"] == "flying_to_goal" and s["hold"]) == 0
+    # systemd: READY=1 once up, then the watchdog fed from the control loop.
+    assert any(m.startswith("READY=1") for m in messages)
+    assert sum(m == "WATCHDOG=1" for m in messages) >= 5
+    # The recording: the policy saw its forward speed (body-frame ODOMETRY rotated correctly).
+    header, records = read_recording(rig.record)
+    assert header["control_period_s"] == 0.1 and len(records) >= 40
+    assert records["state"][:, 3].max() > 1.5  # vel_fwd_m_s during the cruise
+    assert np.all(records["depth_m"] > 0)
+
+
+@scenario("ardupilot_15m")
+def test_ardupilot_flies_15_m_to_its_goal_and_lands(rigs):
+    rig = rigs["ardupilot_15m"]
+    code = rig.wait_companion(120)
+    assert code == 0, rig.procs.stderr("companion")[-3000:]
+    status = _final_vehicle_status(rig, time.time())
+    rig.procs.stop_all()
+    events = [r["event"] for r in rig.vehicle_records()]
+    assert "landed" in events and "disarmed" in events
+    assert math.dist(status["pos_ned"][:2], [15.0, 0.0]) < 1.0 and status["pos_ned"][2] == 0.0
+    assert not status["armed"] and not status["crashed"]
+    intervals = {r["msg_id"] for r in rig.vehicle_records() if r["event"] == "message_interval"}
+    assert intervals == {32, 30}  # LOCAL_POSITION_NED + ATTITUDE: ArduPilot has no ODOMETRY
+    phases = [r["to"] for r in _events(rig, "phase")]
+    assert phases.index("switching_mode") < phases.index("arming") < phases.index("taking_off")  # GUIDED, arm, NAV_TAKEOFF
+    assert phases[-2:] == ["landing", "landed"]
+
+
+@scenario("pilot_engages")
+def test_without_arm_the_companion_streams_holds_until_the_pilot_selects_offboard(rigs):
+    rig = rigs["pilot_engages"]
+    gcs = GroundStation(rig.gcs_port)
+    try:
+        rig.wait_for_event(lambda r: r.get("kind") == "event" and r.get("to") == "waiting_for_pilot", 60,
+                           "waiting for the pilot")
+        time.sleep(0.5)
+        held = [s for s in _steps(rig) if s["phase"] == "waiting_for_pilot"]
+        assert held and all(s["sent"] and s["cmd"] == [0.0, 0.0, 0.0] for s in held)
+        gcs.wait_heartbeat()
+        assert gcs.command(176, 1, 6, 0) == 0  # the pilot selects OFFBOARD: accepted thanks to the hold stream
+        code = rig.wait_companion(30)
+    finally:
+        gcs.close()
+        rig.procs.stop_all()
+    assert code == 0, rig.procs.stderr("companion")[-3000:]
+    modes = [r for r in rig.vehicle_records() if r["event"] == "mode"]
+    assert [m["mode"] for m in modes][:1] == ["OFFBOARD"] and "from 255/190" in modes[0]["why"]  # not the companion
+    assert not any(r["event"] == "mode" and "191" in r.get("why", "") for r in rig.vehicle_records())
+    (arrived,) = _events(rig, "arrived")
+    assert arrived["dist_m"] <= 0.5
+
+
+@scenario("gcs_goal")
+def test_goal_sent_by_the_ground_station_at_run_time(rigs):
+    rig = rigs["gcs_goal"]
+    gcs = GroundStation(rig.gcs_port)
+    try:
+        rig.wait_for_event(lambda r: r.get("kind") == "step" and (r.get("hold") or "").startswith("no goal"),
+                           60, "a hold for want of a goal")
+        gcs.wait_heartbeat()
+        gcs.send_goal(5.0, 2.0, -3.5)
+        text = gcs.conn.recv_match(type="STATUSTEXT", blocking=True, timeout=5,
+                                   condition="'goal set' in STATUSTEXT.text")
+        assert text is not None and text.get_srcComponent() == 191  # answered through the vehicle's router
+        code = rig.wait_companion(30)
+    finally:
+        gcs.close()
+        rig.procs.stop_all()
+    assert code == 0, rig.procs.stderr("companion")[-3000:]
+    (goal,) = _events(rig, "goal")
+    assert goal["goal_ned"] == [5.0, 2.0, -3.5] and goal["sender"] == [255, 190]
+    (arrived,) = _events(rig, "arrived")
+    assert arrived["dist_m"] <= 0.5
+
+
+@scenario("signing", "unsigned_companion")
+def test_mavlink_signing_refuses_unsigned_goals_and_unsigned_companions(rigs):
+    rig = rigs["signing"]
+    unsigned_gcs = GroundStation(rig.gcs_port)
+    try:
+        rig.wait_for_event(lambda r: r.get("kind") == "step" and r.get("phase") == "flying_to_goal",
+                           60, "engagement with signed commands")
+        unsigned_gcs.wait_heartbeat()
+        unsigned_gcs.send_goal(4.0, 0.0, -3.0)
+        time.sleep(1.0)
+        assert _events(rig, "goal") == []  # refused
+        unsigned_gcs.close()
+        signed_gcs = GroundStation(rig.gcs_port, signing_key=rig.key)
+        signed_gcs.wait_heartbeat()  # learns where the vehicle is
+        signed_gcs.send_goal(4.0, 0.0, -3.0)
+        code = rig.wait_companion(30)
+        signed_gcs.close()
+    finally:
+        unsigned_gcs.close()
+    assert code == 0, rig.procs.stderr("companion")[-3000:]
+    (goal,) = _events(rig, "goal")
+    assert goal["signed"] is True and goal["goal_ned"] == [4.0, 0.0, -3.0]
+    assert _final_vehicle_status(rig, time.time())["refused_unsigned"] >= 1
+
+    rig.procs.stop_all()
+
+    # A companion without the key: the signed vehicle ignores its unsigned commands.
+    rig = rigs["unsigned_companion"]
+    code = rig.wait_companion(60)
+    rig.procs.stop_all()
+    assert code == 8
+    assert "switch to OFFBOARD: no COMMAND_ACK after 3 attempts" in rig.procs.stderr("companion")
+    assert all(s["phase"] != "flying_to_goal" for s in _steps(rig))
+    assert _events(rig, "mode") == []  # the vehicle never changed mode
+
+
+@scenario("obstacle")
+def test_depth_stops_the_vehicle_before_an_obstacle_and_the_recording_replays(rigs):
+    rig = rigs["obstacle"]
+    assert rig.wait_companion(60) == 7  # never arrives: the pole is in the way
+    status = _final_vehicle_status(rig, time.time())
+    assert 4.5 < status["pos_ned"][0] < 8.5 and not status["crashed"]
+    _header, records = read_recording(rig.record)
+    # The image centre the brake policy looks at (its lower half sees the ground 6 m ahead).
+    centre_m = {int(r["frame_seq"]): float(r["depth_m"][8:24, 8:24].min()) for r in records}
+    above_horizon_m = records["depth_m"][:, 8:16, 12:20].min(axis=(1, 2))
+    assert above_horizon_m[0] > 9.0 and above_horizon_m[-1] < 4.0  # the pole grows in the frames the policy saw
+
+    # Replay those frames (looped) into a companion flying a vehicle in an open world: it brakes
+    # exactly on the replayed frames that show the pole close.
+    rig.stop_vehicle()
+    rig.vehicle_log = rig.tmp_path / "vehicle2.jsonl"
+    rig.start_vehicle("--airborne", "--start", "0,0,-3")
+    rig.companion_log = rig.tmp_path / "replay.jsonl"
+    rig.start_companion(rig.policy, "--goal", "40,0,-3", "--camera", f"replay:{rig.record},loop", "--arm",
+                        "--takeoff", "3", "--exit-on-arrival", "--timeout", "8")
+    code = rig.wait_companion(40)
+    rig.procs.stop_all()
+    assert code == 7
+    steps = [s for s in _steps(rig) if s["phase"] == "flying_to_goal" and s["policy"] is not None]
+    assert steps and all(s["frame_seq"] in centre_m for s in steps)  # every frame came from the recording
+    near = [s["policy"][0] for s in steps if centre_m[s["frame_seq"]] < 3.9]
+    far = [s["policy"][0] for s in steps if centre_m[s["frame_seq"]] > 4.1]
+    assert near and far and all(v == 0.0 for v in near) and all(v > 0.0 for v in far)
