@@ -7,39 +7,30 @@ as SAC+AE's, so the comparison isolates how the representation is learned.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from sitl.rl.networks import Decoder, DepthNormalizer, conv_output_side, weight_init
+from sitl.rl.networks import Decoder, DepthNormalizer, Encoder, weight_init
 
 
-class VAEEncoder(nn.Module):
-    """Conv stack -> (mean, log-variance) of a diagonal Gaussian latent; ``forward`` gives the mean."""
+class VAEEncoder(Encoder):
+    """SAC+AE's conv stack -> (mean, log-variance) of a diagonal Gaussian; ``forward`` gives the mean.
+
+    ``fc`` of the base class is the mean head; its LayerNorm and tanh are not used.
+    """
 
     def __init__(self, frames: int, height: int, width: int, latent_dim: int = 50, filters: int = 32) -> None:
-        super().__init__()
-        self.convs = nn.ModuleList([nn.Conv2d(frames, filters, 3, stride=2)] +
-                                   [nn.Conv2d(filters, filters, 3, stride=1) for _ in range(3)])
-        self.feature_shape = (filters, conv_output_side(height), conv_output_side(width))
-        self.fc_mu = nn.Linear(math.prod(self.feature_shape), latent_dim)
-        self.fc_logvar = nn.Linear(math.prod(self.feature_shape), latent_dim)
-        self.latent_dim = latent_dim
-
-    def features(self, x: torch.Tensor) -> torch.Tensor:
-        for conv in self.convs:
-            x = torch.relu(conv(x))
-        return x.flatten(1)
+        super().__init__(frames, height, width, latent_dim, filters)
+        self.fc_logvar = nn.Linear(self.fc.in_features, latent_dim)
 
     def moments(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        f = self.features(x)
-        return self.fc_mu(f), self.fc_logvar(f)
+        f = self.conv_features(x)
+        return self.fc(f), self.fc_logvar(f)
 
     def forward(self, x: torch.Tensor, detach_convs: bool = False) -> torch.Tensor:
-        return self.fc_mu(self.features(x))
+        return self.fc(self.conv_features(x))
 
 
 def train_vae(images_m: np.ndarray, max_range_m: float, latent_dim: int = 50, epochs: int = 20, batch_size: int = 128,
