@@ -1,0 +1,79 @@
+"""Evaluation speed of ``python -m sitl.swarm_test``: episodes per second, circle scenario, N = 8.
+
+Flies ``--episodes`` (default 100) episodes of the 8-UAV circle (radius 12 m) exactly as
+the command does (parallel worlds, one policy batch over every acting UAV, paths
+recorded) with three controllers: a policy, the straight-to-goal reference and ORCA.
+
+The policy is ``models/policy.pt`` when it exists (or ``--policy PATH``); otherwise a
+freshly initialised actor of the fast training preset's size (32x32 depth, 256 hidden
+units) is exported to a temporary file. Its inference costs the same as a trained
+policy's, but it never arrives, so every UAV flies the full 40 s time limit: an upper
+bound on the time a trained policy needs (crossing the circle takes 12-20 s, not 40 s).
+
+Usage: ``python benchmarks/eval_speed.py [--episodes 100] [--threads 2] [--policy PATH]``.
+The last line printed is one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import torch  # noqa: E402
+
+from sitl.config import ScenarioConfig  # noqa: E402
+from sitl.swarm_test import DEFAULT_POLICY, EvalSettings, evaluate_method, resolve_method  # noqa: E402
+
+
+def untrained_policy(path: Path) -> Path:
+    """Export a randomly initialised fast-preset actor (same network size as a trained policy)."""
+    from companion.spec import DEFAULT_ACTION_SPEC, CameraSpec
+    from sitl.rl.agent import AgentConfig, SacAeAgent
+    from sitl.rl.export import export_policy
+
+    torch.manual_seed(0)
+    agent = SacAeAgent(AgentConfig(hidden_dim=256), CameraSpec(width=32, height=32), DEFAULT_ACTION_SPEC)
+    export_policy(agent, path, 0.1, {"method": "untrained", "note": "benchmark stand-in for a trained policy"})
+    return path
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--episodes", type=int, default=100)
+    parser.add_argument("--threads", type=int, default=2, help="torch threads (default 2, the machine's cores)")
+    parser.add_argument("--policy", type=Path, default=None, help="policy file (default models/policy.pt if present)")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        if args.policy is not None:
+            policy_path, source = args.policy, str(args.policy)
+        elif DEFAULT_POLICY.exists():
+            policy_path, source = DEFAULT_POLICY, str(DEFAULT_POLICY)
+        else:
+            policy_path = untrained_policy(Path(tmp) / "untrained.pt")
+            source = "untrained fast-preset actor (flies the full time limit)"
+        settings = EvalSettings(scenario=ScenarioConfig(name="circle", circle_radius_m=12.0), num_uavs=8,
+                                episodes=args.episodes, seed=0)
+        out = {"scenario": "circle r=12 m", "num_uavs": 8, "episodes": args.episodes, "threads": args.threads,
+               "policy_source": source}
+        for name, spec in (("policy", str(policy_path)), ("straight", "straight"), ("orca", "orca")):
+            method = resolve_method(spec)
+            evaluate_method(method, EvalSettings(episodes=2, batch_worlds=2), progress=False)  # warm-up (numba, torch)
+            result = evaluate_method(method, settings, progress=False)
+            steps = max(r.duration_s for r in result.records) / result.sim_config.control_period_s
+            print(f"{name:8s} {args.episodes} episodes in {result.wall_s:6.1f} s = {result.episodes_per_s:6.2f} "
+                  f"episodes/s (success {result.summary['success_rate']:.3f}, longest episode {steps:.0f} steps)")
+            out[f"{name}_episodes_per_s"] = round(result.episodes_per_s, 2)
+            out[f"{name}_wall_s"] = round(result.wall_s, 2)
+            out[f"{name}_success_rate"] = round(result.summary["success_rate"], 3)
+    print(json.dumps(out))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,155 @@
+"""ORCA in 3D as a privileged reference controller (``--policy orca``).
+
+Optimal Reciprocal Collision Avoidance (van den Berg et al., 2011) computed with RVO2-3D
+through its PyPI binding ``jt-pyrvo23d`` (module ``rvo23d``, the C++ library of Snape et
+al.). Unlike the learned policy, which sees only its depth camera, ORCA here knows the
+true positions and velocities of every UAV in its world: it is the classical reference
+the policy is measured against, not a competitor under the same sensing.
+
+ORCA assumes holonomic agents that reach any velocity within ``max_speed`` at once; our
+UAVs only fly forward along their heading, turn at up to 0.5 rad/s, climb at up to
+0.5 m/s and track commands with a lag. The velocity ORCA chooses is therefore mapped onto
+the policy's command space (:func:`velocity_to_action`) and the gap is absorbed by a
+radius margin above the collision radius R, as a real deployment of ORCA on multicopters
+would do.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.frames import ned_to_frd
+from companion.spec import DEFAULT_ACTION_SPEC, ActionSpec
+
+
+@dataclass(frozen=True)
+class OrcaParams:
+    """ORCA settings and the mapping of its velocity to body-frame commands.
+
+    The defaults were chosen on the circle (N = 8) and medium random scenes with the
+    kinematic dynamics (docs/evaluation.md): a 0.2 m margin over R = 0.3 m covers the
+    UAV's turn-rate limit and velocity lag; a 2.5 s horizon reacts early enough for a
+    0.5 rad/s turn without freezing the swarm.
+    """
+
+    radius_margin_m: float = 0.2  # ORCA radius = collision radius R + margin
+    time_horizon_s: float = 2.5  # look-ahead for other UAVs
+    neighbor_dist_m: float = 10.0  # only UAVs this close are considered
+    max_neighbors: int = 16
+    max_speed_m_s: float = 2.0  # ORCA's speed sphere = the forward speed limit
+    goal_slowdown_s: float = 1.0  # preferred speed = min(max_speed, distance / this): no overshoot
+    yaw_gain: float = 2.0  # yaw rate = gain x bearing of the new velocity (rad/s per rad)
+
+
+def _import_rvo():
+    """Import the RVO2-3D binding, or explain how to install it."""
+    try:
+        import rvo23d  # noqa: PLC0415 - optional compiled dependency, needed only for --policy orca
+    except ImportError as err:  # pragma: no cover - depends on the machine
+        raise ImportError(
+            "--policy orca needs the RVO2-3D binding from PyPI: pip install jt-pyrvo23d "
+            "(wheels for Linux x86_64, CPython 3.10-3.13)"
+        ) from err
+    return rvo23d
+
+
+def preferred_velocity(pos_ned: np.ndarray, goal_ned: np.ndarray, params: OrcaParams,
+                       spec: ActionSpec = DEFAULT_ACTION_SPEC) -> np.ndarray:
+    """Velocity [M, 3] (NED) straight at the goal: 2 m/s, slower near it, climb within its limit.
+
+    The vertical part is clipped to the climb limit (0.5 m/s) rather than the whole vector
+    being scaled, so that the preferred velocity is one the UAV can actually fly: ORCA's
+    guarantee only holds for velocities that are executed.
+    """
+    delta = goal_ned - pos_ned
+    horizontal = np.hypot(delta[:, 0], delta[:, 1])
+    speed = np.minimum(params.max_speed_m_s, horizontal / params.goal_slowdown_s)
+    out = np.zeros_like(delta)
+    scale = np.divide(speed, horizontal, out=np.zeros_like(speed), where=horizontal > 1e-9)
+    out[:, 0] = delta[:, 0] * scale
+    out[:, 1] = delta[:, 1] * scale
+    out[:, 2] = np.clip(delta[:, 2] / params.goal_slowdown_s, spec.low[1], spec.high[1])
+    return out
+
+
+def velocity_to_action(vel_ned: np.ndarray, yaw_rad: np.ndarray, params: OrcaParams,
+                       spec: ActionSpec = DEFAULT_ACTION_SPEC) -> np.ndarray:
+    """Map ORCA's new velocities [M, 3] (NED) to commands ``(fwd, down, yaw rate)`` [M, 3].
+
+    forward = projection on the heading (so a UAV that must turn slows down instead of
+    flying off the line ORCA chose), down = the vertical component, yaw rate = gain x the
+    bearing of the new velocity; each clipped to the action bounds.
+    """
+    frd = ned_to_frd(vel_ned, yaw_rad)
+    bearing = np.arctan2(frd[:, 1], frd[:, 0])
+    bearing = np.where(np.hypot(frd[:, 0], frd[:, 1]) > 1e-3, bearing, 0.0)  # no direction: hold heading
+    action = np.stack([frd[:, 0], frd[:, 2], params.yaw_gain * bearing], axis=1)
+    return np.clip(action, spec.low_array(), spec.high_array()).astype(np.float32)
+
+
+class OrcaController:
+    """ORCA for every UAV of a :class:`sitl.env.SwarmEnv` (one RVO2-3D simulator per world).
+
+    Call it with the env after each reset or step; it reads the true state of the worlds
+    (privileged sensing) and returns actions [M, 3]. UAVs that no longer act but are still
+    present (arrived and hovering) are kept in ORCA as agents with zero velocity so others
+    avoid them; removed UAVs are parked far away, out of everyone's neighbourhood.
+    """
+
+    _PARK_M = 1.0e5  # parked agents sit this far away, 1 km apart from each other
+
+    def __init__(self, num_worlds: int, uavs_per_world: int, collision_radius_m: float,
+                 control_period_s: float, params: OrcaParams = OrcaParams(),
+                 spec: ActionSpec = DEFAULT_ACTION_SPEC) -> None:
+        rvo = _import_rvo()
+        self.params, self.spec = params, spec
+        self.n = uavs_per_world
+        radius = collision_radius_m + params.radius_margin_m
+        self._sims = []
+        for _ in range(num_worlds):
+            sim = rvo.PyRVOSimulator(control_period_s, params.neighbor_dist_m, params.max_neighbors,
+                                     params.time_horizon_s, radius, params.max_speed_m_s)
+            for _ in range(uavs_per_world):
+                sim.addAgent((0.0, 0.0, 0.0))
+            self._sims.append(sim)
+
+    @classmethod
+    def for_env(cls, env, params: OrcaParams = OrcaParams()) -> "OrcaController":
+        cfg = env.config
+        return cls(env.num_worlds, env.uavs_per_world, cfg.collision_radius_m, cfg.control_period_s, params,
+                   env.action_spec)
+
+    def new_velocities(self, pos_ned: np.ndarray, vel_ned: np.ndarray, goal_ned: np.ndarray,
+                       acting: np.ndarray, present: np.ndarray) -> np.ndarray:
+        """ORCA's collision-free velocities [M, 3] (NED) for the acting UAVs (zero elsewhere)."""
+        pref = preferred_velocity(pos_ned, goal_ned, self.params, self.spec)
+        pref[~acting] = 0.0
+        vel = np.where(acting[:, None], vel_ned, 0.0)  # hovering UAVs: static obstacles
+        out = np.zeros_like(pos_ned)
+        n = self.n
+        for b, sim in enumerate(self._sims):
+            rows = slice(b * n, (b + 1) * n)
+            if not acting[rows].any():
+                continue
+            for i in range(n):
+                r = b * n + i
+                if present[r]:
+                    sim.setAgentPosition(i, tuple(pos_ned[r]))
+                    sim.setAgentVelocity(i, tuple(vel[r]))
+                else:
+                    sim.setAgentPosition(i, (self._PARK_M + 1000.0 * i, self._PARK_M, 0.0))
+                    sim.setAgentVelocity(i, (0.0, 0.0, 0.0))
+                sim.setAgentPrefVelocity(i, tuple(pref[r]))
+            sim.doStep()  # computes the new velocities (it also moves its own copies; we overwrite them)
+            for i in range(n):
+                if acting[b * n + i]:
+                    out[b * n + i] = sim.getAgentVelocity(i)
+        return out
+
+    def act_env(self, env) -> np.ndarray:
+        """Actions [M, 3] for every UAV of ``env`` from its true state."""
+        d = env.dynamics
+        vel = self.new_velocities(d.pos_ned, d.vel_ned, env.goal_ned, env.acting, env.present)
+        return velocity_to_action(vel, d.yaw_rad, self.params, self.spec)

@@ -1,0 +1,121 @@
+"""Figures of the evaluation: trajectories (paper Figs. 5 and 7) and scaling with N (Fig. 6).
+
+Everything is drawn with matplotlib's non-interactive Agg backend, so it works on a
+headless machine. Positions are local NED; the plots show east/north/altitude, which is
+how a reader expects a map (north up, altitude up).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from sitl.metrics import UAVRecord
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _colours(plt, count: int) -> np.ndarray:
+    """One distinct colour per UAV (tab20 up to 20 UAVs, then a continuous map)."""
+    if count <= 10:
+        return plt.cm.tab10(np.arange(count))
+    if count <= 20:
+        return plt.cm.tab20(np.arange(count))
+    return plt.cm.turbo(np.linspace(0.05, 0.95, count))
+
+
+def episode_records(records: list[UAVRecord], episode: int | None = None) -> list[UAVRecord]:
+    """The records of one episode (the first one in ``records`` when ``episode`` is None)."""
+    if not records:
+        return []
+    if episode is None:
+        episode = records[0].episode
+    return sorted((r for r in records if r.episode == episode), key=lambda r: r.uav)
+
+
+def plot_trajectories(records: list[UAVRecord], path: str | Path, title: str, episode: int | None = None) -> Path:
+    """One episode's paths: 3D perspective plus top, front and side views, one colour per UAV.
+
+    Start: filled dot; goal: cross; a failed UAV ends in a red ring (collision) or a grey
+    square (timeout). Needs records with ``path_ned`` (``SimConfig.record_paths``).
+    Returns the written path.
+    """
+    plt = _pyplot()
+    chosen = episode_records(records, episode)
+    if not chosen:
+        raise ValueError("no records to plot")
+    if any(r.path_ned is None for r in chosen):
+        raise ValueError("records carry no paths: evaluate with record_paths=True")
+    path = Path(path)
+    fig = plt.figure(figsize=(12, 10))
+    ax3d = fig.add_subplot(2, 2, 1, projection="3d")
+    top, front, side = (fig.add_subplot(2, 2, k) for k in (2, 3, 4))
+    colours = _colours(plt, len(chosen))
+    # (axes, horizontal coordinate, vertical coordinate) of each 2D view; NED index, sign.
+    views = ((top, (1, 1.0), (0, 1.0)), (front, (1, 1.0), (2, -1.0)), (side, (0, 1.0), (2, -1.0)))
+    for rec, colour in zip(chosen, colours):
+        xyz = np.asarray(rec.path_ned, dtype=float)
+        east, north, alt = xyz[:, 1], xyz[:, 0], -xyz[:, 2]
+        goal = np.asarray(rec.goal_ned, dtype=float)
+        ax3d.plot(east, north, alt, color=colour, lw=1.4)
+        ax3d.scatter(east[0], north[0], alt[0], color=colour, s=18)
+        ax3d.scatter(goal[1], goal[0], -goal[2], color=colour, marker="x", s=30)
+        for ax, (hi, hs), (vi, vs) in views:
+            ax.plot(hs * xyz[:, hi], vs * xyz[:, vi], color=colour, lw=1.4)
+            ax.plot(hs * xyz[0, hi], vs * xyz[0, vi], "o", color=colour, ms=4)
+            ax.plot(hs * goal[hi], vs * goal[vi], "x", color=colour, ms=6)
+            if rec.outcome.startswith("collision"):
+                ax.plot(hs * xyz[-1, hi], vs * xyz[-1, vi], "o", mfc="none", mec="red", ms=10, mew=1.5)
+            elif rec.outcome == "timeout":
+                ax.plot(hs * xyz[-1, hi], vs * xyz[-1, vi], "s", mfc="none", mec="grey", ms=9, mew=1.5)
+    ax3d.set(xlabel="east (m)", ylabel="north (m)", zlabel="altitude (m)", title="3D view")
+    top.set(xlabel="east (m)", ylabel="north (m)", title="top view", aspect="equal")
+    front.set(xlabel="east (m)", ylabel="altitude (m)", title="front view (looking north)")
+    side.set(xlabel="north (m)", ylabel="altitude (m)", title="side view (looking west)")
+    for ax in (top, front, side):
+        ax.grid(alpha=0.3)
+    failed = sum(not r.success for r in chosen)
+    fig.suptitle(f"{title}\nepisode {chosen[0].episode}: {len(chosen) - failed}/{len(chosen)} arrived "
+                 "(dot: start, x: goal, red ring: collision, grey square: timeout)")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def plot_scaling(results: dict[str, dict[int, dict]], path: str | Path, title: str) -> Path:
+    """Paper Fig. 6: success rate and SPL against the number of UAVs, one line per method.
+
+    ``results[method][n]`` is a :func:`sitl.metrics.summarize` dict; missing cells are gaps.
+    """
+    plt = _pyplot()
+    path = Path(path)
+    fig, (ax_s, ax_p) = plt.subplots(1, 2, figsize=(11, 4.5))
+    markers = "osd^v<>"
+    for k, (method, by_n) in enumerate(results.items()):
+        ns = sorted(by_n)
+        if not ns:
+            continue
+        for ax, key in ((ax_s, "success_rate"), (ax_p, "spl")):
+            # Colour and marker follow the method's position, so a method keeps its look when another has no data.
+            ax.plot(ns, [by_n[n][key] for n in ns], marker=markers[k % len(markers)], color=f"C{k % 10}",
+                    label=method)
+    for ax, label in ((ax_s, "success rate"), (ax_p, "SPL")):
+        ax.set(xlabel="number of UAVs N", ylabel=label, ylim=(-0.03, 1.03))
+        ax.grid(alpha=0.3)
+    ax_s.legend()
+    fig.suptitle(title)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
