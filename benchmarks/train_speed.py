@@ -5,7 +5,7 @@ Measures, on this machine's CPU (``--threads`` torch threads):
 * one full agent update (critic, actor every 2nd, targets, decoder) at batch 128 from a
   filled replay buffer, for each method and image size given;
 * rollout throughput of the training loop: vectorised environment steps with the actor's
-  sampled actions for the default preset's 2 worlds x 8 UAVs (transitions per second).
+  sampled actions for the default preset's worlds of 8 UAVs (transitions per second).
 
 The last line is one JSON object with ``updates_per_s`` (default preset: sac_ae, 32x32,
 1024 hidden units) and ``env_steps_per_s`` (agent transitions per second while acting),
@@ -83,7 +83,9 @@ def main() -> None:
                 print(f"{method:7s} {size}x{size} hidden {hidden:4d}: {rate:6.2f} updates/s "
                       f"({1000 / rate:6.1f} ms/update)", flush=True)
     env_rate = rollout_rate(args.seconds)
-    print(f"rollouts (2 worlds x 8 UAVs, actor sampling): {env_rate:.0f} transitions/s", flush=True)
+    cfg = TrainConfig()
+    print(f"rollouts ({cfg.num_worlds} worlds x {cfg.num_uavs} UAVs, actor sampling): {env_rate:.0f} transitions/s",
+          flush=True)
     default = rates.get("sac_ae_32px_h1024")
     print(json.dumps({"benchmark": "train_speed", "threads": args.threads, "updates_per_s": default,
                       "env_steps_per_s": round(env_rate), "updates_per_s_by_config": rates}))
