@@ -16,28 +16,22 @@ from pathlib import Path
 
 import numpy as np
 
+from sitl.cli_args import positive_int
 from sitl.baselines import straight_to_goal
 from sitl.config import DENSITIES, SCENARIOS, ScenarioConfig, SimConfig, density_from_name
 from sitl.env import SwarmEnv
 from sitl.metrics import UAVRecord, summarize
 
 
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    return value
-
-
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="python -m sitl.demo", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--n", type=_positive_int, default=8, help="UAVs per world (default 8)")
+    parser.add_argument("--n", type=positive_int, default=8, help="UAVs per world (default 8)")
     parser.add_argument("--scenario", choices=SCENARIOS, default="circle", help="scenario (default circle)")
     parser.add_argument("--density", default="medium",
                         help=f"random scenario density: {', '.join(DENSITIES)} or UAV/m^3 (default medium)")
     parser.add_argument("--radius", type=float, default=12.0, help="circle radius in m (default 12)")
-    parser.add_argument("--episodes", type=_positive_int, default=10, help="episodes, run in parallel (default 10)")
+    parser.add_argument("--episodes", type=positive_int, default=10, help="episodes, run in parallel (default 10)")
     parser.add_argument("--dynamics", choices=("kinematic", "jsbsim"), default="kinematic")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=Path("runs/demo"), help="output folder (default runs/demo)")

@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from companion.spec import CameraSpec
+from sitl.cli_args import positive_float, positive_int
 from sitl.camera import StereoNoise
 from sitl.config import DENSITIES, SCENARIOS, ScenarioConfig, SimConfig, density_from_name
 from sitl.env import Observation, SwarmEnv
@@ -348,40 +349,21 @@ def markdown_table(key_names: list[str], rows: list[tuple[list[str], dict | None
 
 # --------------------------------------------------------------------------- command line
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    return value
-
-
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not value > 0 or not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
-    return value
-
 
 def _add_common(parser: argparse.ArgumentParser) -> None:
     """Options shared by the single evaluation and ``paper``."""
-    parser.add_argument("--episodes", type=_positive_int, default=100, help="episodes per evaluation (default 100)")
+    parser.add_argument("--episodes", type=positive_int, default=100, help="episodes per evaluation (default 100)")
     parser.add_argument("--seed", type=int, default=0,
                         help=f"evaluation seed; the simulator uses {EVAL_SEED_OFFSET} + SEED, disjoint from training")
     parser.add_argument("--dynamics", choices=("kinematic", "jsbsim"), default="kinematic",
                         help="UAV dynamics (default kinematic)")
     parser.add_argument("--camera-noise", action=argparse.BooleanOptionalAction, default=False,
                         help="stereo depth noise and dropouts (default off: perfect depth)")
-    parser.add_argument("--max-steps", type=_positive_int, default=400,
+    parser.add_argument("--max-steps", type=positive_int, default=400,
                         help="episode time limit in control steps (default 400 = 40 s)")
-    parser.add_argument("--batch", type=_positive_int, default=100,
+    parser.add_argument("--batch", type=positive_int, default=100,
                         help="episodes flown at once as parallel worlds (default 100)")
-    parser.add_argument("--threads", type=_positive_int, default=2, help="torch threads for the policy (default 2)")
+    parser.add_argument("--threads", type=positive_int, default=2, help="torch threads for the policy (default 2)")
     parser.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
 
 
@@ -390,11 +372,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--policy", default=str(DEFAULT_POLICY),
                         help=f"policy file, or a reference: {', '.join(BASELINES)} (default {DEFAULT_POLICY})")
-    parser.add_argument("--n", type=_positive_int, default=8, help="UAVs per world (default 8)")
+    parser.add_argument("--n", type=positive_int, default=8, help="UAVs per world (default 8)")
     parser.add_argument("--scenario", choices=SCENARIOS, default="circle", help="scenario (default circle)")
     parser.add_argument("--density", default="medium",
                         help=f"random scenario density: {', '.join(DENSITIES)} or UAV/m^3 (default medium)")
-    parser.add_argument("--radius", type=_positive_float, default=12.0, help="circle radius in m (default 12)")
+    parser.add_argument("--radius", type=positive_float, default=12.0, help="circle radius in m (default 12)")
     _add_common(parser)
     parser.add_argument("--out", type=Path, default=None,
                         help="output folder (default runs/swarm_test/<method>-<scenario>-n<N>)")
@@ -557,12 +539,12 @@ def parse_paper_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--policies", default="",
                         help="METHOD=PATH,... for " + ", ".join(PAPER_METHODS) +
                              " (default models/policy_<method>.pt; a missing file is a 'not trained' row)")
-    parser.add_argument("--table-n", type=_positive_int, default=8, help="UAVs in the Table II scenes (default 8)")
+    parser.add_argument("--table-n", type=positive_int, default=8, help="UAVs in the Table II scenes (default 8)")
     parser.add_argument("--densities", type=_density_list, default=list(DENSITIES),
                         help="Table II densities (default small,medium,large)")
     parser.add_argument("--ns", type=_int_list, default=list(DEFAULT_FIG6_NS),
                         help="Fig. 6 swarm sizes (default " + ",".join(map(str, DEFAULT_FIG6_NS)) + ")")
-    parser.add_argument("--radius", type=_positive_float, default=12.0, help="Fig. 6 circle radius in m (default 12)")
+    parser.add_argument("--radius", type=positive_float, default=12.0, help="Fig. 6 circle radius in m (default 12)")
     _add_common(parser)
     args = parser.parse_args(argv)
     try:

@@ -34,6 +34,7 @@ import numpy as np
 
 from companion.flight_modes import AutopilotKind
 from companion.spec import CameraSpec
+from sitl.cli_args import positive_float, positive_int
 from sitl.camera import DepthCamera
 from sitl.collision import uav_uav_collisions
 from sitl.depth_transport import DepthFrameSender
@@ -236,26 +237,10 @@ def _port(text: str) -> int:
     return int(text)
 
 
-def _positive_int(text: str) -> int:
-    if not text.isdigit() or int(text) < 1:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
-    return int(text)
-
-
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
-    if not value > 0 or not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"must be > 0, got {text!r}")
-    return value
-
-
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="python -m sitl.vehicle", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--n", type=_positive_int, default=1, help="number of vehicles (default 1)")
+    parser.add_argument("--n", type=positive_int, default=1, help="number of vehicles (default 1)")
     parser.add_argument("--autopilot", choices=[k.value for k in AutopilotKind], default="px4",
                         help="behave like PX4 (default) or ArduCopter")
     parser.add_argument("--host", default="127.0.0.1", help="address of the companions and ground station (default 127.0.0.1)")
@@ -268,12 +253,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--yaw-deg", type=float, default=0.0, help="initial heading in degrees from north (default 0)")
     parser.add_argument("--airborne", action="store_true", help="start armed and hovering at --start (needs D < -0.5)")
     parser.add_argument("--dynamics", choices=DYNAMICS_NAMES, default="kinematic")
-    parser.add_argument("--camera-hz", type=_positive_float, default=30.0,
+    parser.add_argument("--camera-hz", type=positive_float, default=30.0,
                         help="depth frame rate (default 30; use a multiple of the policy's control rate)")
     parser.add_argument("--camera-size", type=_size, default=(32, 32), metavar="WxH", help="rendered resolution (default 32x32)")
     parser.add_argument("--hfov", type=float, default=90.0, help="horizontal field of view in degrees (default 90)")
-    parser.add_argument("--max-range", type=_positive_float, default=20.0, help="camera range in metres (default 20)")
-    parser.add_argument("--supersample", type=_positive_int, default=4, help="sub-rays per pixel side (default 4)")
+    parser.add_argument("--max-range", type=positive_float, default=20.0, help="camera range in metres (default 20)")
+    parser.add_argument("--supersample", type=positive_int, default=4, help="sub-rays per pixel side (default 4)")
     parser.add_argument("--cylinder", type=_floats((3, 4), "--cylinder"), action="append", metavar="N,E,R[,H]",
                         help="a vertical pole at N,E of radius R (and height H, default 30 m); repeatable")
     parser.add_argument("--box", type=_floats((6,), "--box"), action="append", metavar="N,E,D,HN,HE,HD",
@@ -282,7 +267,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--odometry-child-frame", choices=("local_ned", "body_frd"), default="local_ned",
                         help="ODOMETRY velocity frame: local_ned as PX4 1.14+, body_frd as PX4 up to 1.13")
     parser.add_argument("--log", default="-", metavar="PATH", help="JSON-lines event log (default '-': stdout)")
-    parser.add_argument("--duration", type=_positive_float, metavar="S", help="stop after S seconds")
+    parser.add_argument("--duration", type=positive_float, metavar="S", help="stop after S seconds")
     args = parser.parse_args(argv)
     if args.airborne and args.start[2] > -0.5:
         parser.error("--airborne needs a start altitude: --start N,E,D with D < -0.5 (altitude is -D)")
