@@ -10,6 +10,8 @@ from sitl.camera import SceneGeometry, StereoNoise
 #: UAVs per cubic metre of the random scenarios' box (paper IV.B).
 DENSITIES: dict[str, float] = {"small": 0.1, "medium": 0.06, "large": 0.04}
 SCENARIOS = ("random", "circle")
+#: Training may also draw each world's episode from either scenario ("mixed").
+TRAINING_SCENARIOS = SCENARIOS + ("mixed",)
 ARRIVED_BEHAVIOURS = ("hover", "remove")
 CRASHED_BEHAVIOURS = ("remove", "freeze")
 
@@ -42,6 +44,9 @@ class ScenarioConfig:
     formation by a uniform random angle and moves each start by a uniform random offset of
     up to ``circle_jitter_m`` per axis (goals stay exactly antipodal to the nominal starts),
     so episodes differ even for a deterministic policy.
+
+    Mixed (training only): each episode is a circle episode with probability
+    ``circle_fraction``, else a random one.
     """
 
     name: str = "random"
@@ -54,10 +59,13 @@ class ScenarioConfig:
     circle_radius_m: float = 12.0
     circle_alt_m: float = 10.0
     circle_jitter_m: float = 0.25
+    circle_fraction: float = 0.5
 
     def __post_init__(self) -> None:
-        if self.name not in SCENARIOS:
-            raise ValueError(f"unknown scenario {self.name!r}; choose one of {', '.join(SCENARIOS)}")
+        if self.name not in TRAINING_SCENARIOS:
+            raise ValueError(f"unknown scenario {self.name!r}; choose one of {', '.join(TRAINING_SCENARIOS)}")
+        if not 0.0 <= self.circle_fraction <= 1.0:
+            raise ValueError(f"circle_fraction must be in [0, 1], got {self.circle_fraction}")
         if not self.density > 0:
             raise ValueError(f"density must be > 0 UAV/m^3, got {self.density}")
         if not self.circle_radius_m > 0:

@@ -80,6 +80,9 @@ def sample_circle(num_uavs: int, config: ScenarioConfig, rng: np.random.Generato
 
 def sample_scenario(num_uavs: int, config: ScenarioConfig, rng: np.random.Generator) -> ScenarioSample:
     """Draw one episode of the configured scenario."""
+    if config.name == "mixed":
+        draw_circle = rng.random() < config.circle_fraction
+        return (sample_circle if draw_circle else sample_random)(num_uavs, config, rng)
     if config.name == "random":
         return sample_random(num_uavs, config, rng)
     if config.name == "circle":

@@ -8,11 +8,17 @@ per-UAV record into an output folder::
     python -m sitl.swarm_test --n 8                         # models/policy.pt, circle r = 12 m
     python -m sitl.swarm_test --policy orca --scenario random --density large
     python -m sitl.swarm_test --policy runs/x/policy.pt --episodes 200 --camera-noise
+    python -m sitl.swarm_test --n 8 --mavlink               # N real companion processes over MAVLink
 
 Controllers (``--policy``): a policy file (TorchScript, see docs/policy_file.md; it sees
 only its depth camera, goal and own velocity), ``straight`` (flies straight at its goal:
 what a scenario gives for free) or ``orca`` (ORCA in 3D with perfect knowledge of every
 UAV: the privileged classical reference, :mod:`sitl.orca`).
+
+``--mavlink`` flies the same episodes with the whole product instead: the SITL vehicles
+(``sitl.vehicle``) and one real ``companion`` process per UAV, in real time over MAVLink
+(:mod:`sitl.mavlink_swarm`), and reports it beside the in-process evaluation of the same
+episodes.
 
 ``python -m sitl.swarm_test paper`` reproduces the paper's Table II and Fig. 6 (resumable;
 ``paper --help``). Evaluation seeds are ``EVAL_SEED_OFFSET + --seed``, disjoint from
@@ -352,7 +358,8 @@ def markdown_table(key_names: list[str], rows: list[tuple[list[str], dict | None
 
 def _add_common(parser: argparse.ArgumentParser) -> None:
     """Options shared by the single evaluation and ``paper``."""
-    parser.add_argument("--episodes", type=positive_int, default=100, help="episodes per evaluation (default 100)")
+    parser.add_argument("--episodes", type=positive_int, default=None,
+                        help="episodes per evaluation (default 100; 10 with --mavlink, which flies in real time)")
     parser.add_argument("--seed", type=int, default=0,
                         help=f"evaluation seed; the simulator uses {EVAL_SEED_OFFSET} + SEED, disjoint from training")
     parser.add_argument("--dynamics", choices=("kinematic", "jsbsim"), default="kinematic",
@@ -385,7 +392,40 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         help="do not fly the straight-to-goal reference beside the controller")
     parser.add_argument("--plot-episodes", type=int, default=1,
                         help="episodes to draw as trajectory figures (default 1; 0: none)")
+    mav = parser.add_argument_group("the whole stack over MAVLink (--mavlink)")
+    mav.add_argument("--mavlink", action="store_true",
+                     help="fly the episodes with sitl.vehicle and N real companion processes in real time")
+    mav.add_argument("--start", choices=("ground", "airborne"), default=None,
+                     help="ground: each companion arms and takes off (--arm --takeoff); airborne: the vehicles "
+                          "start hovering at the episode's start (default ground for circle, airborne for random)")
+    mav.add_argument("--base-port", type=_port, default=14540, help="companion i <-> vehicle i on UDP base-port + i")
+    mav.add_argument("--depth-port", type=_port, default=14640, help="vehicle i's depth frames to UDP depth-port + i")
+    mav.add_argument("--gcs-port", type=_port, default=14550, help="ground-station port of every vehicle (this process)")
     args = parser.parse_args(argv)
+    if args.episodes is None:
+        args.episodes = 10 if args.mavlink else 100
+    if args.mavlink:
+        if args.policy in BASELINES:
+            parser.error(f"--mavlink flies a policy file in the companion; {args.policy!r} is an in-process reference")
+        if args.camera_noise:
+            parser.error("--mavlink: sitl.vehicle renders perfect depth; --camera-noise is in-process only")
+        if args.start is None:
+            args.start = "ground" if args.scenario == "circle" else "airborne"
+        if args.start == "ground" and args.scenario == "random":
+            parser.error("--start ground needs the circle scenario: random starts can be stacked vertically within "
+                         "2R, so climbing from the ground below them would collide; use --start airborne")
+        ports = {"--base-port": args.base_port, "--depth-port": args.depth_port}
+        for name, first in ports.items():
+            if first + args.n > 65536:
+                parser.error(f"{name} {first} + {args.n} vehicles runs past port 65535")
+        blocks = [(args.base_port, args.base_port + args.n), (args.depth_port, args.depth_port + args.n),
+                  (args.gcs_port, args.gcs_port + 1)]
+        for a, (lo, hi) in enumerate(blocks):
+            for lo2, hi2 in blocks[a + 1:]:
+                if lo < hi2 and lo2 < hi:
+                    parser.error(f"port ranges overlap: base {args.base_port}+{args.n}, depth {args.depth_port}"
+                                 f"+{args.n}, gcs {args.gcs_port}")
+        args.batch = max(args.batch, args.episodes)  # the in-process run then meets exactly the same episodes
     if args.plot_episodes < 0:
         parser.error(f"--plot-episodes must be >= 0, got {args.plot_episodes}")
     try:
@@ -395,6 +435,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         parser.error(str(err))
     args.parser = parser
     return args
+
+
+def _port(text: str) -> int:
+    if not text.isdigit() or not 1024 <= int(text) <= 65535:
+        raise argparse.ArgumentTypeError(f"port must be a number in 1024..65535, got {text!r}")
+    return int(text)
 
 
 def _scenario_tag(scenario: ScenarioConfig) -> str:
@@ -447,8 +493,20 @@ def run_single(args: argparse.Namespace) -> int:
         return 2
 
     default_name = f"{method.label}-{_scenario_tag(settings.scenario)}-n{settings.num_uavs}"
-    out = args.out or Path("runs/swarm_test") / default_name
+    out = args.out or Path("runs/swarm_test") / (default_name + ("-mavlink" if args.mavlink else ""))
     out.mkdir(parents=True, exist_ok=True)
+    mavlink_info = None
+    if args.mavlink:
+        try:
+            mav_result, mavlink_info = _run_over_mavlink(args, method, settings, results[0], out)
+        except Exception as err:  # noqa: BLE001 - reported with its reason; every process is already stopped
+            from sitl.mavlink_swarm import MavlinkSwarmError
+
+            if not isinstance(err, (MavlinkSwarmError, OSError, ValueError)):
+                raise
+            print(f"error: MAVLink evaluation stopped: {err}", file=sys.stderr)
+            return 1
+        results.insert(0, mav_result)
     main_result = results[0]
     figures = []
     if args.plot_episodes:
@@ -467,6 +525,8 @@ def run_single(args: argparse.Namespace) -> int:
         # The reference's records without paths: they would double the file for no figure.
         "references": {r.method.label: r.to_json(with_paths=False) for r in results[1:]},
     }
+    if mavlink_info is not None:
+        data["mavlink"] = mavlink_info
     metrics_path = out / "metrics.json"
     _write_json(metrics_path, data)
     if args.json:
@@ -479,9 +539,57 @@ def run_single(args: argparse.Namespace) -> int:
         sim_s = sum(rec.duration_s for rec in r.records) / settings.num_uavs
         print(f"{r.method.label}: {settings.episodes} episodes in {r.wall_s:.1f} s "
               f"({r.episodes_per_s:.1f} episodes/s, ~{sim_s:.0f} swarm-seconds)")
+    if mavlink_info is not None:
+        agree, costs = mavlink_info["agreement"], mavlink_info["costs"]
+        print(f"MAVLink vs in-process on the same episodes: success {agree['success_mavlink']:.3f} vs "
+              f"{agree['success_in_process']:.3f} ({agree['success_difference_points']:+.1f} points), SPL "
+              f"{agree['spl_mavlink']:.3f} vs {agree['spl_in_process']:.3f}")
+        print(f"cost: companion CPU median {100 * (costs['companion_cpu_fraction_median'] or 0):.1f} % of a core, "
+              f"missed control ticks {costs['missed_ticks_total']} of "
+              f"{costs['missed_ticks_total'] + costs['policy_steps_total']}, frame-to-setpoint p99 median "
+              f"{costs['frame_to_setpoint_p99_ms_median']} ms, world CPU median "
+              f"{100 * (costs['world_cpu_fraction_median'] or 0):.1f} %; logs in {out / 'episodes'}")
     names = [p.name for p in figures] + [metrics_path.name]
     print(f"output folder {out}: {', '.join(names)}" + (f"; metrics also in {args.json}" if args.json else ""))
     return 0
+
+
+def _run_over_mavlink(args: argparse.Namespace, method: Method, settings: EvalSettings, in_process: EvalResult,
+                      out: Path) -> tuple[EvalResult, dict]:
+    """Fly the evaluation's episodes with the real processes (:mod:`sitl.mavlink_swarm`).
+
+    Returns the MAVLink result and what the JSON says about it: settings, costs, each
+    episode's processes, and the agreement with ``in_process`` (same policy, same episodes).
+    """
+    from sitl.mavlink_swarm import MavlinkSettings, evaluate_over_mavlink
+    from sitl.scenarios import sample_scenario
+
+    # The in-process evaluation draws its episodes in this order from this seed, so both
+    # runs meet the same starts and goals.
+    rng = np.random.default_rng(settings.env_seed)
+    samples = [sample_scenario(settings.num_uavs, settings.scenario, rng) for _ in range(settings.episodes)]
+    sim_config = in_process.sim_config
+    camera = sim_config.camera
+    mav_settings = MavlinkSettings(
+        policy_path=str(method.path), start=args.start, base_port=args.base_port, depth_port=args.depth_port,
+        gcs_port=args.gcs_port, dynamics=settings.dynamics, camera_size=(camera.width, camera.height),
+        hfov_deg=camera.hfov_deg, max_range_m=camera.max_range_m,
+        time_limit_s=settings.max_episode_steps * sim_config.control_period_s)
+    evaluation = evaluate_over_mavlink(samples, mav_settings, out, progress=args.progress)
+    label = f"{method.label} (MAVLink)"
+    result = EvalResult(replace(method, label=label), settings, sim_config, evaluation.records,
+                        summarize(evaluation.records), evaluation.wall_s)
+    ours, theirs = result.summary, in_process.summary
+    info = {
+        "agreement": {"success_mavlink": ours["success_rate"], "success_in_process": theirs["success_rate"],
+                      "success_difference_points": 100.0 * (ours["success_rate"] - theirs["success_rate"]),
+                      "spl_mavlink": ours["spl"], "spl_in_process": theirs["spl"]},
+        "settings": dataclasses.asdict(mav_settings),
+        "costs": evaluation.costs(),
+        "episodes": [{"episode": k, "wall_s": round(e.wall_s, 2), "ready_s": round(e.ready_s, 2),
+                      "companions": e.companions, "world": e.world} for k, e in enumerate(evaluation.episodes)],
+    }
+    return result, info
 
 
 # --------------------------------------------------------------------------- paper
@@ -707,7 +815,11 @@ def main(argv: list[str] | None = None) -> int:
         return paper_main(argv[1:])
     args = parse_args(argv)
     args.argv = argv
-    return run_single(args)
+    try:
+        return run_single(args)
+    except KeyboardInterrupt:  # every child process is already stopped (sitl.mavlink_swarm)
+        print("interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

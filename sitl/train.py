@@ -25,6 +25,7 @@ import dataclasses
 import json
 import math
 import os
+import shutil
 import sys
 import time
 from dataclasses import dataclass, field, fields, replace
@@ -34,7 +35,7 @@ import numpy as np
 import torch
 
 from companion.spec import CameraSpec
-from sitl.config import SCENARIOS, RewardConfig, ScenarioConfig, SimConfig, density_from_name
+from sitl.config import TRAINING_SCENARIOS, RewardConfig, ScenarioConfig, SimConfig, density_from_name
 from sitl.env import SwarmEnv
 from sitl.metrics import summarize
 from sitl.rl.agent import METHODS, AgentConfig, SacAeAgent
@@ -54,7 +55,8 @@ class TrainConfig:
 
     preset: str = _param("fast", "fast (CPU, < 2 h) or paper (Table I literally); explicit flags override it")
     method: str = _param("sac_ae", f"learning method: {', '.join(METHODS)}")
-    scenario: str = _param("random", "training scenario: random or circle")
+    scenario: str = _param("random", "training scenario: random, circle or mixed (each episode one of the two)")
+    circle_fraction: float = _param(0.5, "mixed scenario: probability that an episode is a circle episode")
     density: str = _param("medium", "random scenario density: small, medium, large or UAV/m^3")
     circle_radius_m: float = _param(12.0, "circle scenario radius in m")
     yaw_jitter_deg: float = _param(45.0, "random scenario: initial heading error from the goal bearing, up to +-deg")
@@ -81,14 +83,18 @@ class TrainConfig:
     vae_policy: str = _param("", "vae method: policy.pt that flies while depth images are collected")
     vae_images: int = _param(20_000, "vae method: stacked depth images to collect")
     vae_epochs: int = _param(20, "vae method: training epochs of the VAE")
+    init_from: str = _param("", "start from the networks and optimisers of another run's checkpoint.pt (a second "
+                                "curriculum stage); its updates and wall time count in this run's provenance")
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
             raise ValueError(f"unknown preset {self.preset!r}; choose one of {', '.join(PRESETS)}")
         if self.method not in METHODS:
             raise ValueError(f"unknown method {self.method!r}; choose one of {', '.join(METHODS)}")
-        if self.scenario not in SCENARIOS:
-            raise ValueError(f"unknown scenario {self.scenario!r}; choose one of {', '.join(SCENARIOS)}")
+        if self.scenario not in TRAINING_SCENARIOS:
+            raise ValueError(f"unknown scenario {self.scenario!r}; choose one of {', '.join(TRAINING_SCENARIOS)}")
+        if not 0.0 <= self.circle_fraction <= 1.0:
+            raise ValueError(f"circle_fraction must be in [0, 1], got {self.circle_fraction}")
         density_from_name(self.density)
         for name in ("num_uavs", "num_worlds", "image_size", "max_episode_steps", "batch_size", "replay_capacity",
                      "threads"):
@@ -160,9 +166,12 @@ def parse_args(argv: list[str] | None = None) -> tuple[TrainConfig, AgentConfig,
 
 # --------------------------------------------------------------------------- pieces
 
-def make_sim_config(cfg: TrainConfig, num_worlds: int, record_paths: bool = False) -> SimConfig:
-    scenario = ScenarioConfig(name=cfg.scenario, density=density_from_name(cfg.density),
-                              circle_radius_m=cfg.circle_radius_m, yaw_jitter_rad=math.radians(cfg.yaw_jitter_deg))
+def make_sim_config(cfg: TrainConfig, num_worlds: int, record_paths: bool = False,
+                    scenario_name: str | None = None) -> SimConfig:
+    """The worlds of ``cfg`` (``scenario_name`` overrides its scenario, e.g. for evaluation)."""
+    scenario = ScenarioConfig(name=scenario_name or cfg.scenario, density=density_from_name(cfg.density),
+                              circle_radius_m=cfg.circle_radius_m, yaw_jitter_rad=math.radians(cfg.yaw_jitter_deg),
+                              circle_fraction=cfg.circle_fraction)
     camera = CameraSpec(width=cfg.image_size, height=cfg.image_size)
     return SimConfig(num_uavs=cfg.num_uavs, num_worlds=num_worlds, scenario=scenario, camera=camera,
                      max_episode_steps=cfg.max_episode_steps, record_paths=record_paths,
@@ -176,6 +185,11 @@ def evaluate(act, sim_config: SimConfig, seed: int) -> dict:
     while not env.world_done.all():
         obs, *_ = env.step(act(obs.depth, obs.state))
     return summarize(env.finish())
+
+
+def evaluation_scenarios(cfg: TrainConfig) -> tuple[str, ...]:
+    """The scenarios a run is evaluated on: its own, or both halves of a mixed one."""
+    return ("random", "circle") if cfg.scenario == "mixed" else (cfg.scenario,)
 
 
 def default_run_dir(cfg: TrainConfig) -> Path:
@@ -279,8 +293,12 @@ class Trainer:
         from torch.utils.tensorboard import SummaryWriter
 
         self.writer = SummaryWriter(str(run_dir / "tb"))
+        #: counters of the run this one started from (``init_from``), for the provenance
+        self.initial_stage: dict = {}
         if resume:
             self._restore(torch.load(run_dir / "checkpoint.pt", weights_only=False))
+        elif cfg.init_from:
+            self._init_from(Path(cfg.init_from))
 
     def log(self, message: str) -> None:
         print(message, file=sys.stderr, flush=True)
@@ -290,7 +308,7 @@ class Trainer:
         _atomic_save({
             "agent": self.agent.checkpoint(), "buffer": self.buffer.state_dict(), "counters": dict(self.counters),
             "history": self.history, "env_rng": self.env.rng.bit_generator.state,
-            "torch_rng": torch.get_rng_state(),
+            "torch_rng": torch.get_rng_state(), "initial_stage": self.initial_stage,
         }, self.run_dir / "checkpoint.pt")
         plot_learning_curve(self.history, self.run_dir / "learning_curve.png", self._title())
 
@@ -301,8 +319,27 @@ class Trainer:
         self.history = ckpt["history"]
         self.env.rng.bit_generator.state = ckpt["env_rng"]
         torch.set_rng_state(ckpt["torch_rng"])
+        self.initial_stage = ckpt.get("initial_stage", {})
         self.log(f"resumed from {self.run_dir / 'checkpoint.pt'}: {self.counters['updates']} updates, "
                  f"{self.counters['episodes']} episodes")
+
+    def _init_from(self, path: Path) -> None:
+        """Start from another run's networks and optimisers; buffer and counters start afresh."""
+        if path.is_dir():
+            path = path / "checkpoint.pt"
+        if not path.is_file():
+            raise FileNotFoundError(f"--init-from {path}: no such checkpoint")
+        ckpt = torch.load(path, weights_only=False)
+        try:
+            self.agent.restore(ckpt["agent"])
+        except (RuntimeError, KeyError, ValueError) as err:
+            raise ValueError(f"--init-from {path}: its networks do not match this run's agent settings "
+                             f"(method, hidden_dim, image_size, ...): {str(err)[:300]}") from None
+        earlier = ckpt.get("initial_stage", {})  # that run may itself have been a later stage
+        self.initial_stage = {n: ckpt["counters"][n] + earlier.get(n, 0)
+                              for n in ("updates", "env_steps", "transitions", "episodes", "wall_s")}
+        self.log(f"initialised from {path}: {self.initial_stage['updates']} updates, "
+                 f"{self.initial_stage['wall_s'] / 60:.1f} min of training")
 
     def _title(self) -> str:
         c = self.cfg
@@ -314,11 +351,12 @@ class Trainer:
         return (c.total_updates > 0 and k["updates"] >= c.total_updates) or \
                (c.max_episodes > 0 and k["episodes"] >= c.max_episodes)
 
-    def evaluate(self, episodes: int) -> dict:
-        sim = make_sim_config(self.cfg, episodes)
-        summary = evaluate(lambda d, s: self.agent.act(d, s, explore=False), sim,
-                           seed=EVAL_SEED_OFFSET + self.cfg.seed)
-        return summary
+    def evaluate(self, episodes: int) -> dict[str, dict]:
+        """Deterministic evaluation on unseen seeds, one summary per evaluation scenario."""
+        act = lambda d, s: self.agent.act(d, s, explore=False)  # noqa: E731
+        return {name: evaluate(act, make_sim_config(self.cfg, episodes, scenario_name=name),
+                               seed=EVAL_SEED_OFFSET + self.cfg.seed)
+                for name in evaluation_scenarios(self.cfg)}
 
     # -------------------------------------------------------------- main loop
     def run(self) -> Path:
@@ -344,7 +382,7 @@ class Trainer:
         while not self.finished():
             acting = env.acting.copy()
             rows = np.flatnonzero(acting)
-            if k["transitions"] < cfg.init_steps:
+            if k["transitions"] < cfg.init_steps and not cfg.init_from:
                 action = rng.uniform(low, high, size=(env.num_agents, 3)).astype(np.float32)
             else:
                 action = agent.act(obs.depth, obs.state, explore=True)
@@ -407,14 +445,17 @@ class Trainer:
                                 sps=f"{env_rate:.0f}", ups=f"{upd_rate:.2f}")
                 window_t, window_steps, window_updates = now, 0, 0
             if k["updates"] >= next_eval:
-                summary = self.evaluate(cfg.eval_episodes)
+                summaries = self.evaluate(cfg.eval_episodes)
                 self.history["eval_episode"].append(k["episodes"])
-                self.history["eval_success"].append(summary["success_rate"])
-                self.history["eval_spl"].append(summary["spl"])
-                self.writer.add_scalar("eval/success_rate", summary["success_rate"], k["updates"])
-                self.writer.add_scalar("eval/spl", summary["spl"], k["updates"])
-                bar.write(f"eval @ {k['updates']} updates, {k['episodes']} episodes: success "
-                          f"{summary['success_rate']:.3f}, SPL {summary['spl']:.3f}")
+                # The curve shows the mean over the evaluation scenarios; TensorBoard each one.
+                self.history["eval_success"].append(float(np.mean([s["success_rate"] for s in summaries.values()])))
+                self.history["eval_spl"].append(float(np.mean([s["spl"] for s in summaries.values()])))
+                for name, summary in summaries.items():
+                    suffix = "" if len(summaries) == 1 else f"_{name}"
+                    self.writer.add_scalar(f"eval/success_rate{suffix}", summary["success_rate"], k["updates"])
+                    self.writer.add_scalar(f"eval/spl{suffix}", summary["spl"], k["updates"])
+                    bar.write(f"eval @ {k['updates']} updates, {k['episodes']} episodes, {name}: success "
+                              f"{summary['success_rate']:.3f}, SPL {summary['spl']:.3f}")
                 next_eval += cfg.eval_every_updates
             if now - last_ckpt > cfg.checkpoint_every_s:
                 k["wall_s"] = time.perf_counter() - started
@@ -430,21 +471,33 @@ class Trainer:
         """Final evaluation on unseen seeds, then export policy.pt with its provenance."""
         cfg, k = self.cfg, self.counters
         self.log(f"final evaluation: {cfg.final_eval_episodes} episodes, seeds >= {EVAL_SEED_OFFSET}")
-        summary = self.evaluate(cfg.final_eval_episodes) if cfg.final_eval_episodes else {}
+        summaries = self.evaluate(cfg.final_eval_episodes) if cfg.final_eval_episodes else {}
+        before = self.initial_stage
         provenance = {
             "method": cfg.method, "scenario": cfg.scenario, "density": cfg.density, "num_uavs": cfg.num_uavs,
-            "preset": cfg.preset, "updates": k["updates"], "env_steps": k["env_steps"],
-            "transitions": k["transitions"], "episodes": k["episodes"], "wall_time_s": round(k["wall_s"], 1),
+            "preset": cfg.preset, "updates": k["updates"] + before.get("updates", 0),
+            "env_steps": k["env_steps"] + before.get("env_steps", 0),
+            "transitions": k["transitions"] + before.get("transitions", 0),
+            "episodes": k["episodes"] + before.get("episodes", 0),
+            "wall_time_s": round(k["wall_s"] + before.get("wall_s", 0.0), 1),
             "seed": cfg.seed, "device": cfg.device, "threads": cfg.threads,
-            "evaluation": {"episodes": cfg.final_eval_episodes, "seed": EVAL_SEED_OFFSET + cfg.seed,
-                           "scenario": cfg.scenario, "density": cfg.density, **summary},
         }
+        if cfg.init_from:
+            provenance["stages"] = [{"init_from": cfg.init_from, **before},
+                                    {"scenario": cfg.scenario, **{n: k[n] for n in ("updates", "env_steps",
+                                     "transitions", "episodes")}, "wall_s": round(k["wall_s"], 1)}]
+        for i, (name, summary) in enumerate(summaries.items()):
+            # The first evaluation scenario is "evaluation" (what evaluators read); others get a suffix.
+            key = "evaluation" if i == 0 else f"evaluation_{name}"
+            provenance[key] = {"episodes": cfg.final_eval_episodes, "seed": EVAL_SEED_OFFSET + cfg.seed,
+                               "scenario": name, "density": cfg.density, **summary}
         path = self.run_dir / "policy.pt"
         export_policy(self.agent, path, self.sim_config.control_period_s, provenance)
         (self.run_dir / "final_eval.json").write_text(json.dumps(provenance, indent=2))
         self.writer.close()
-        if summary:
-            self.log(f"success {summary['success_rate']:.3f}, SPL {summary['spl']:.3f}; wrote {path}")
+        for name, summary in summaries.items():
+            self.log(f"{name}: success {summary['success_rate']:.3f}, SPL {summary['spl']:.3f}")
+        self.log(f"wrote {path}")
         return path
 
 
@@ -467,7 +520,13 @@ def main(argv: list[str] | None = None) -> int:
         cfg = replace(cfg, run_dir=str(run_dir))
         (run_dir / "config.json").write_text(json.dumps(
             {"train": dataclasses.asdict(cfg), "agent": dataclasses.asdict(agent_cfg)}, indent=2))
-    trainer = Trainer(cfg, agent_cfg, run_dir, resume=bool(resume))
+    try:
+        trainer = Trainer(cfg, agent_cfg, run_dir, resume=bool(resume))
+    except (FileNotFoundError, ValueError) as err:
+        if not resume:
+            shutil.rmtree(run_dir, ignore_errors=True)  # nothing was trained: leave no half-made run behind
+        print(f"error: {err}", file=sys.stderr)
+        return 2
     trainer.log(f"run directory {run_dir}; replay buffer {trainer.buffer.nbytes / 2**20:.0f} MiB")
     trainer.run()
     return 0

@@ -77,10 +77,13 @@ class SimWorld:
         n = args.n
         self.n, self.args, self.log = n, args, log
         self.dynamics = make_dynamics(args.dynamics, n)
-        start = np.asarray(args.start, dtype=np.float64)
-        starts = np.repeat(start[None], n, axis=0)
-        starts[:, 1] += np.arange(n) * args.spacing
-        self.dynamics.reset(np.arange(n), starts, np.full(n, math.radians(args.yaw_deg)))
+        if args.starts is not None:
+            starts, yaws = args.starts
+        else:
+            starts = np.repeat(np.asarray(args.start, dtype=np.float64)[None], n, axis=0)
+            starts[:, 1] += np.arange(n) * args.spacing
+            yaws = np.full(n, math.radians(args.yaw_deg))
+        self.dynamics.reset(np.arange(n), starts, yaws)
         self.camera_spec = CameraSpec(width=args.camera_size[0], height=args.camera_size[1], hfov_deg=args.hfov,
                                       max_range_m=args.max_range)
         self.camera = DepthCamera(self.camera_spec, supersample=args.supersample)
@@ -153,6 +156,13 @@ class SimWorld:
                      round(time.time() - (time.monotonic() - ap.last_setpoint_s), 4),
                      frames_sent=int(self.sender.sent[i]), refused_unsigned=sum(l.refused_unsigned for l in ap.links))
 
+    def trace(self, stream) -> None:
+        """One JSON line of ground truth: every vehicle's position and state (for evaluations)."""
+        record = {"t": round(time.time(), 4), "pos_ned": self.dynamics.pos_ned.round(4).tolist(),
+                  "airborne": [ap.airborne for ap in self.autopilots],
+                  "crashed": [ap.crashed for ap in self.autopilots]}
+        stream.write(json.dumps(record) + "\n")
+
     def close(self) -> None:
         for ap in self.autopilots:
             for link in ap.links:
@@ -160,14 +170,17 @@ class SimWorld:
         self.sender.close()
 
 
-def run(world: SimWorld, duration_s: float | None, camera_hz: float) -> None:
-    """Real-time loop: wait for messages, step physics at 50 Hz, render at ``camera_hz``."""
+def run(world: SimWorld, duration_s: float | None, camera_hz: float, trace=None, trace_hz: float = 10.0) -> None:
+    """Real-time loop: wait for messages, step physics at 50 Hz, render at ``camera_hz``.
+
+    ``trace`` (a text stream) gets :meth:`SimWorld.trace` at ``trace_hz``.
+    """
     stop: list[str] = []
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda signum, _frame: stop.append(signal.Signals(signum).name))
     by_fd = {link.fileno(): (ap, link) for ap in world.autopilots for link in ap.links}
     started = now = time.monotonic()
-    next_physics, next_camera, next_status = now, now, now + 1.0
+    next_physics, next_camera, next_status, next_trace = now, now, now + 1.0, now
     camera_period = 1.0 / camera_hz
     while not stop:
         if duration_s is not None and now - started >= duration_s:
@@ -202,6 +215,9 @@ def run(world: SimWorld, duration_s: float | None, camera_hz: float) -> None:
         if now >= next_status:
             world.status()
             next_status += 1.0
+        if trace is not None and now >= next_trace:
+            world.trace(trace)
+            next_trace = max(next_trace + 1.0 / trace_hz, now)
     world.status()
     world.log("stopped", reason=stop[0] if stop else "?")
 
@@ -219,6 +235,23 @@ def _floats(count: tuple[int, ...], name: str):
             raise argparse.ArgumentTypeError(f"{name} needs {' or '.join(map(str, count))} finite numbers, got {text!r}")
         return values
     return parse
+
+
+def _read_starts(path: Path, n: int, airborne: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Per-vehicle starts from a JSON file -> (positions [n, 3] NED, yaws [n] rad)."""
+    try:
+        items = json.loads(path.read_text())
+        ned = np.array([item["ned"] for item in items], dtype=np.float64)
+        yaw = np.radians(np.array([item.get("yaw_deg", 0.0) for item in items], dtype=np.float64))
+    except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as err:
+        raise ValueError(f"not a JSON list of {{\"ned\": [N, E, D], \"yaw_deg\": Y}} objects ({err})") from None
+    if ned.shape != (n, 3) or not np.all(np.isfinite(ned)) or not np.all(np.isfinite(yaw)):
+        raise ValueError(f"needs {n} finite starts (one per vehicle, --n), got shape {ned.shape}")
+    if airborne and np.any(ned[:, 2] > -0.5):
+        raise ValueError("--airborne needs every start in the air (D < -0.5)")
+    if not airborne and np.any(ned[:, 2] != 0.0):
+        raise ValueError("vehicles on the ground start at D = 0; use --airborne to start in the air")
+    return ned, yaw
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -251,6 +284,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         help="start of vehicle 0 in local NED metres (default 0,0,0: on the ground at home)")
     parser.add_argument("--spacing", type=float, default=3.0, help="vehicle i starts i * spacing metres east of vehicle 0")
     parser.add_argument("--yaw-deg", type=float, default=0.0, help="initial heading in degrees from north (default 0)")
+    parser.add_argument("--starts", metavar="FILE",
+                        help="JSON list of {\"ned\": [N, E, D], \"yaw_deg\": Y}, one per vehicle: overrides "
+                             "--start, --spacing and --yaw-deg")
     parser.add_argument("--airborne", action="store_true", help="start armed and hovering at --start (needs D < -0.5)")
     parser.add_argument("--dynamics", choices=DYNAMICS_NAMES, default="kinematic")
     parser.add_argument("--camera-hz", type=positive_float, default=30.0,
@@ -268,10 +304,17 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         help="ODOMETRY velocity frame: local_ned as PX4 1.14+, body_frd as PX4 up to 1.13")
     parser.add_argument("--log", default="-", metavar="PATH", help="JSON-lines event log (default '-': stdout)")
     parser.add_argument("--duration", type=positive_float, metavar="S", help="stop after S seconds")
+    parser.add_argument("--trace", metavar="PATH",
+                        help="write every vehicle's true position, airborne and crashed flags as JSON lines at 10 Hz")
     args = parser.parse_args(argv)
-    if args.airborne and args.start[2] > -0.5:
+    if args.starts is not None:
+        try:
+            args.starts = _read_starts(Path(args.starts), args.n, args.airborne)
+        except ValueError as err:
+            parser.error(f"--starts {args.starts}: {err}")
+    if args.airborne and args.starts is None and args.start[2] > -0.5:
         parser.error("--airborne needs a start altitude: --start N,E,D with D < -0.5 (altitude is -D)")
-    if not args.airborne and args.start[2] != 0.0:
+    if not args.airborne and args.starts is None and args.start[2] != 0.0:
         parser.error("a vehicle on the ground starts at D = 0; use --airborne to start in the air")
     if args.cylinder:
         args.cylinder = [[c[0], c[1], c[2], -(c[3] if len(c) == 4 else 30.0), 0.0] for c in args.cylinder]
@@ -302,10 +345,13 @@ def main(argv: list[str] | None = None) -> int:
         signing=bool(args.signing_key))
     print(f"sitl.vehicle: {args.n} {args.autopilot} vehicle(s) up; companion i: --connect udp:{args.base_port}+i "
           f"--camera sitl:{args.depth_port}+i", file=sys.stderr, flush=True)
+    trace = open(args.trace, "w", buffering=1) if args.trace else None  # noqa: SIM115
     try:
-        run(world, args.duration, args.camera_hz)
+        run(world, args.duration, args.camera_hz, trace)
     finally:
         world.close()
+        if trace is not None:
+            trace.close()
         if stream is not sys.stdout:
             stream.close()
     return 0
