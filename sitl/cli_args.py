@@ -1,8 +1,4 @@
-"""Argument types shared by the simulator's command lines (clear argparse errors, exit 2).
-
-``sitl.vehicle`` still has private copies of the port, number-list and size types; the
-ones here are what ``sitl.world`` uses, with the same syntax and messages.
-"""
+"""Argument types shared by the simulator's command lines (clear argparse errors, exit 2)."""
 
 from __future__ import annotations
 

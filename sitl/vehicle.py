@@ -34,7 +34,7 @@ import numpy as np
 
 from companion.flight_modes import AutopilotKind
 from companion.spec import CameraSpec
-from sitl.cli_args import positive_float, positive_int
+from sitl.cli_args import cylinder_rows, finite_floats, image_size, positive_float, positive_int, udp_port
 from sitl.camera import DepthCamera
 from sitl.collision import uav_uav_collisions
 from sitl.depth_transport import DepthFrameSender
@@ -225,18 +225,6 @@ def run(world: SimWorld, duration_s: float | None, camera_hz: float, trace=None,
 # --------------------------------------------------------------------------- command line
 
 
-def _floats(count: tuple[int, ...], name: str):
-    def parse(text: str) -> list[float]:
-        try:
-            values = [float(v) for v in text.split(",")]
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name} must be comma-separated numbers, got {text!r}") from None
-        if len(values) not in count or not all(math.isfinite(v) for v in values):
-            raise argparse.ArgumentTypeError(f"{name} needs {' or '.join(map(str, count))} finite numbers, got {text!r}")
-        return values
-    return parse
-
-
 def _read_starts(path: Path, n: int, airborne: bool) -> tuple[np.ndarray, np.ndarray]:
     """Per-vehicle starts from a JSON file -> (positions [n, 3] NED, yaws [n] rad)."""
     try:
@@ -254,22 +242,6 @@ def _read_starts(path: Path, n: int, airborne: bool) -> tuple[np.ndarray, np.nda
     return ned, yaw
 
 
-def _size(text: str) -> tuple[int, int]:
-    try:
-        width, height = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"camera size must be WIDTHxHEIGHT, got {text!r}") from None
-    if width < 1 or height < 1:
-        raise argparse.ArgumentTypeError(f"camera size must be positive, got {text!r}")
-    return width, height
-
-
-def _port(text: str) -> int:
-    if not text.isdigit() or not 0 <= int(text) <= 65535:
-        raise argparse.ArgumentTypeError(f"port must be a number in 0..65535, got {text!r}")
-    return int(text)
-
-
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="python -m sitl.vehicle", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -277,10 +249,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--autopilot", choices=[k.value for k in AutopilotKind], default="px4",
                         help="behave like PX4 (default) or ArduCopter")
     parser.add_argument("--host", default="127.0.0.1", help="address of the companions and ground station (default 127.0.0.1)")
-    parser.add_argument("--base-port", type=_port, default=14540, help="companion i listens on base-port + i (default 14540)")
-    parser.add_argument("--depth-port", type=_port, default=14640, help="depth frames of vehicle i go to depth-port + i (default 14640)")
-    parser.add_argument("--gcs-port", type=_port, default=14550, help="ground-station port, 0 for none (default 14550)")
-    parser.add_argument("--start", type=_floats((3,), "--start"), default=[0.0, 0.0, 0.0], metavar="N,E,D",
+    parser.add_argument("--base-port", type=udp_port, default=14540, help="companion i listens on base-port + i (default 14540)")
+    parser.add_argument("--depth-port", type=udp_port, default=14640, help="depth frames of vehicle i go to depth-port + i (default 14640)")
+    parser.add_argument("--gcs-port", type=udp_port, default=14550, help="ground-station port, 0 for none (default 14550)")
+    parser.add_argument("--start", type=finite_floats((3,), "--start"), default=[0.0, 0.0, 0.0], metavar="N,E,D",
                         help="start of vehicle 0 in local NED metres (default 0,0,0: on the ground at home)")
     parser.add_argument("--spacing", type=float, default=3.0, help="vehicle i starts i * spacing metres east of vehicle 0")
     parser.add_argument("--yaw-deg", type=float, default=0.0, help="initial heading in degrees from north (default 0)")
@@ -291,13 +263,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--dynamics", choices=DYNAMICS_NAMES, default="kinematic")
     parser.add_argument("--camera-hz", type=positive_float, default=30.0,
                         help="depth frame rate (default 30; use a multiple of the policy's control rate)")
-    parser.add_argument("--camera-size", type=_size, default=(32, 32), metavar="WxH", help="rendered resolution (default 32x32)")
+    parser.add_argument("--camera-size", type=image_size, default=(32, 32), metavar="WxH", help="rendered resolution (default 32x32)")
     parser.add_argument("--hfov", type=float, default=90.0, help="horizontal field of view in degrees (default 90)")
     parser.add_argument("--max-range", type=positive_float, default=20.0, help="camera range in metres (default 20)")
     parser.add_argument("--supersample", type=positive_int, default=4, help="sub-rays per pixel side (default 4)")
-    parser.add_argument("--cylinder", type=_floats((3, 4), "--cylinder"), action="append", metavar="N,E,R[,H]",
+    parser.add_argument("--cylinder", type=finite_floats((3, 4), "--cylinder"), action="append", metavar="N,E,R[,H]",
                         help="a vertical pole at N,E of radius R (and height H, default 30 m); repeatable")
-    parser.add_argument("--box", type=_floats((6,), "--box"), action="append", metavar="N,E,D,HN,HE,HD",
+    parser.add_argument("--box", type=finite_floats((6,), "--box"), action="append", metavar="N,E,D,HN,HE,HD",
                         help="an axis-aligned box: centre and half sizes in NED metres; repeatable")
     parser.add_argument("--signing-key", metavar="FILE", help="MAVLink 2 signing key: sign all, refuse unsigned")
     parser.add_argument("--odometry-child-frame", choices=("local_ned", "body_frd"), default="local_ned",
@@ -316,8 +288,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         parser.error("--airborne needs a start altitude: --start N,E,D with D < -0.5 (altitude is -D)")
     if not args.airborne and args.starts is None and args.start[2] != 0.0:
         parser.error("a vehicle on the ground starts at D = 0; use --airborne to start in the air")
-    if args.cylinder:
-        args.cylinder = [[c[0], c[1], c[2], -(c[3] if len(c) == 4 else 30.0), 0.0] for c in args.cylinder]
+    args.cylinder = cylinder_rows(args.cylinder)
     if args.signing_key:
         from companion.mavlink_link import load_signing_key
 

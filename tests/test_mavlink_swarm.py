@@ -201,3 +201,16 @@ def test_outcomes_from_the_world_trace_use_the_in_process_definitions():
     assert records[3].duration_s == pytest.approx(2.5, abs=1e-6)
     assert all(r.episode == 3 for r in records)
     assert records[0].straight_distance_m == pytest.approx(4.0)
+
+
+@pytest.mark.parametrize("content, message", [
+    ("not json", "not a JSON list"),
+    ('[{"ned": [0, 0, 0], "yaw_deg": 0}]', "needs 2 finite starts"),
+    ('[{"ned": [0, 0, -3]}, {"ned": [0, 3, -3]}]', "use --airborne"),
+])
+def test_vehicle_starts_file_is_checked(tmp_path, content, message):
+    starts = tmp_path / "starts.json"
+    starts.write_text(content)
+    proc = subprocess.run([sys.executable, "-m", "sitl.vehicle", "--n", "2", "--starts", str(starts)], cwd=REPO,
+                          env=env(), capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and message in proc.stderr, proc.stderr
