@@ -27,7 +27,7 @@ def test_one_uav_learns_to_reach_its_goal(tmp_path):
         "--run-dir", str(tmp_path),
     ])
     trainer = Trainer(cfg, agent_cfg, tmp_path)
-    before = trainer.evaluate(50)["success_rate"]
+    before = trainer.evaluate(50)["circle"]["success_rate"]
     policy_path = trainer.run()
     after = json.loads((tmp_path / "final_eval.json").read_text())["evaluation"]["success_rate"]
     print(f"success before training {before:.2f}, after {after:.2f}")

@@ -121,3 +121,18 @@ def test_bad_actions_raise_or_clip():
         env.step(np.tile([5.0, 2.0, 3.0], (2, 1)))
         clipped.step(np.tile([2.0, 0.5, 0.5], (2, 1)))
     np.testing.assert_allclose(env.dynamics.pos_ned, clipped.dynamics.pos_ned)
+
+
+def test_mixed_scenario_draws_circles_with_the_given_fraction():
+    from sitl.scenarios import sample_scenario
+
+    rng = np.random.default_rng(3)
+    cfg = ScenarioConfig(name="mixed", circle_fraction=0.5)
+    altitudes = [sample_scenario(8, cfg, rng).goal_ned[:, 2] for _ in range(200)]
+    # A circle episode has every goal at the circle's altitude; a random one does not.
+    circles = sum(bool(np.allclose(z, -cfg.circle_alt_m)) for z in altitudes)
+    assert 70 <= circles <= 130
+    only_random = ScenarioConfig(name="mixed", circle_fraction=0.0)
+    assert not any(np.allclose(sample_scenario(8, only_random, rng).goal_ned[:, 2], -10.0) for _ in range(20))
+    with pytest.raises(ValueError, match="circle_fraction"):
+        ScenarioConfig(name="mixed", circle_fraction=1.5)

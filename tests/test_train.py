@@ -175,3 +175,32 @@ def test_n_step_returns_follow_each_agent_and_stop_at_episode_ends():
         else:  # agent 1 stops at its terminal transition t = 3: no bootstrap after it
             t0 = next(t for t in range(1, 4) if abs(r - sum(0.5**k * (100 + t + k) for k in range(4 - t))) < 1e-4)
             assert disc == 0.0 and nxt_state == 3 and nxt_depth == 103
+
+
+def test_second_stage_starts_from_a_checkpoint_and_trains_on_mixed_scenes(tmp_path):
+    """--init-from: the networks carry over, the provenance adds both stages, mixed evaluates both scenes."""
+    first, second = tmp_path / "stage1", tmp_path / "stage2"
+    run = lambda *a: subprocess.run(_train_cmd(*a), capture_output=True, text=True, env=_env(), cwd=tmp_path,  # noqa: E731
+                                    timeout=300)
+    done = run(first, "--total-updates", "15")
+    assert done.returncode == 0, done.stderr
+    stage1 = torch.load(first / "checkpoint.pt", weights_only=False)
+    done = run(second, "--total-updates", "10", "--scenario", "mixed", "--init-from", str(first))
+    assert done.returncode == 0, done.stderr
+    assert f"initialised from {first / 'checkpoint.pt'}: 15 updates" in done.stderr
+    final = json.loads((second / "final_eval.json").read_text())
+    assert final["updates"] == 25 and final["stages"][0]["updates"] == 15 and final["stages"][1]["updates"] == 10
+    assert final["wall_time_s"] > final["stages"][1]["wall_s"]
+    assert final["evaluation"]["scenario"] == "random" and final["evaluation_circle"]["scenario"] == "circle"
+    # It really continued from stage 1's weights: 10 Adam steps at lr 1e-3 move each weight by at most ~0.01,
+    # while a fresh initialisation would differ by ~0.1 everywhere.
+    stage2 = torch.load(second / "checkpoint.pt", weights_only=False)
+    for key, w1 in stage1["agent"]["model"].items():
+        if "critic" in key and key.endswith("weight") and "target" not in key:
+            assert (stage2["agent"]["model"][key] - w1).abs().max() < 0.015, key
+
+    wrong = run(tmp_path / "stage2b", "--total-updates", "10", "--hidden-dim", "64", "--init-from", str(first))
+    assert wrong.returncode == 2 and "do not match this run's agent settings" in wrong.stderr
+    assert not (tmp_path / "stage2b").exists()
+    missing = run(tmp_path / "stage2c", "--total-updates", "10", "--init-from", str(tmp_path / "nowhere"))
+    assert missing.returncode == 2 and "no such checkpoint" in missing.stderr
