@@ -42,7 +42,10 @@ from sitl.rl.agent import METHODS, AgentConfig, SacAeAgent
 from sitl.rl.buffer import FrameReplayBuffer
 from sitl.rl.export import export_policy
 
-EVAL_SEED_OFFSET = 1_000_000  # evaluation seeds are >= this; training seeds are below it
+EVAL_SEED_OFFSET = 1_000_000  # test seeds (final evaluation, swarm_test) are >= this; training seeds are below it
+#: Periodic evaluations during training (and snapshot selection) use their own seeds, so
+#: choosing a snapshot never looks at the test episodes.
+VALIDATION_SEED_OFFSET = 500_000
 
 
 def _param(default, help: str):
@@ -72,8 +75,10 @@ class TrainConfig:
     updates_per_episode: int = _param(0, "updates owed per finished world episode (Table I: 400)")
     updates_per_env_step: float = _param(1.0, "updates owed per vectorised environment step")
     init_steps: int = _param(2_000, "transitions of uniform random actions before learning starts")
-    eval_every_updates: int = _param(2_500, "evaluate the deterministic policy every so many updates (0: never)")
-    eval_episodes: int = _param(20, "episodes per periodic evaluation (seeds disjoint from training)")
+    eval_every_updates: int = _param(2_500, "validate the deterministic policy every so many updates (0: never)")
+    eval_episodes: int = _param(20, "episodes per periodic validation (validation seeds, disjoint from training and test)")
+    select_best: bool = _param(False, "keep the networks of every validation and export the best one (highest mean "
+                                      "validation success over the evaluation scenarios; later wins ties)")
     final_eval_episodes: int = _param(100, "episodes of the final evaluation recorded in policy.json")
     checkpoint_every_s: float = _param(300.0, "seconds between checkpoints")
     seed: int = _param(0, "seed of the environment, the buffer and torch")
@@ -138,7 +143,11 @@ def _add_dataclass_flags(parser: argparse.ArgumentParser, cls, title: str) -> No
         flag = "--" + f.name.replace("_", "-")
         kind = type(f.default)
         help_text = f.metadata.get("help", "") + f" (default: {f.default})"
-        group.add_argument(flag, dest=f.name, type=kind, default=argparse.SUPPRESS, help=help_text)
+        if kind is bool:
+            group.add_argument(flag, dest=f.name, action=argparse.BooleanOptionalAction, default=argparse.SUPPRESS,
+                               help=help_text)
+        else:
+            group.add_argument(flag, dest=f.name, type=kind, default=argparse.SUPPRESS, help=help_text)
 
 
 def parse_args(argv: list[str] | None = None) -> tuple[TrainConfig, AgentConfig, str | None]:
@@ -351,12 +360,36 @@ class Trainer:
         return (c.total_updates > 0 and k["updates"] >= c.total_updates) or \
                (c.max_episodes > 0 and k["episodes"] >= c.max_episodes)
 
-    def evaluate(self, episodes: int) -> dict[str, dict]:
-        """Deterministic evaluation on unseen seeds, one summary per evaluation scenario."""
+    def evaluate(self, episodes: int, seed_offset: int = EVAL_SEED_OFFSET) -> dict[str, dict]:
+        """Deterministic evaluation on unseen seeds (test seeds by default), one summary per evaluation scenario."""
         act = lambda d, s: self.agent.act(d, s, explore=False)  # noqa: E731
         return {name: evaluate(act, make_sim_config(self.cfg, episodes, scenario_name=name),
-                               seed=EVAL_SEED_OFFSET + self.cfg.seed)
+                               seed=seed_offset + self.cfg.seed)
                 for name in evaluation_scenarios(self.cfg)}
+
+    def _keep_snapshot(self, summaries: dict[str, dict]) -> None:
+        """Save the networks with their validation result (``select_best``)."""
+        folder = self.run_dir / "snapshots"
+        folder.mkdir(exist_ok=True)
+        updates = self.counters["updates"]
+        score = float(np.mean([s["success_rate"] for s in summaries.values()]))
+        torch.save(self.agent.state_dict(), folder / f"agent_{updates}.pt")
+        index_path = folder / "validation.json"
+        index = json.loads(index_path.read_text()) if index_path.exists() else []
+        index = [row for row in index if row["updates"] != updates]
+        index.append({"updates": updates, "wall_s": round(time.perf_counter() - self._started, 1), "score": score,
+                      **{name: {"success_rate": s["success_rate"], "spl": s["spl"]} for name, s in summaries.items()}})
+        index_path.write_text(json.dumps(index, indent=1))
+
+    def _restore_best_snapshot(self) -> dict | None:
+        """Load the best validated networks into the agent; returns that snapshot's row."""
+        index_path = self.run_dir / "snapshots" / "validation.json"
+        if not index_path.exists():
+            return None
+        best = max(json.loads(index_path.read_text()), key=lambda row: (row["score"], row["updates"]))
+        self.agent.load_state_dict(torch.load(self.run_dir / "snapshots" / f"agent_{best['updates']}.pt"))
+        self.log(f"selected the snapshot at {best['updates']} updates (validation success {best['score']:.3f})")
+        return best
 
     # -------------------------------------------------------------- main loop
     def run(self) -> Path:
@@ -373,7 +406,7 @@ class Trainer:
         unit = "update" if cfg.total_updates > 0 else "episode"
         bar = tqdm(total=total, initial=k["updates"] if unit == "update" else k["episodes"], unit=unit,
                    desc=self._title(), file=sys.stderr, dynamic_ncols=True, mininterval=2.0)
-        started = time.perf_counter() - k["wall_s"]
+        started = self._started = time.perf_counter() - k["wall_s"]
         last_ckpt = time.perf_counter()
         next_eval = (k["updates"] // cfg.eval_every_updates + 1) * cfg.eval_every_updates if cfg.eval_every_updates else math.inf
         window_t, window_steps, window_updates = time.perf_counter(), 0, 0
@@ -445,7 +478,9 @@ class Trainer:
                                 sps=f"{env_rate:.0f}", ups=f"{upd_rate:.2f}")
                 window_t, window_steps, window_updates = now, 0, 0
             if k["updates"] >= next_eval:
-                summaries = self.evaluate(cfg.eval_episodes)
+                summaries = self.evaluate(cfg.eval_episodes, VALIDATION_SEED_OFFSET)
+                if cfg.select_best:
+                    self._keep_snapshot(summaries)
                 self.history["eval_episode"].append(k["episodes"])
                 # The curve shows the mean over the evaluation scenarios; TensorBoard each one.
                 self.history["eval_success"].append(float(np.mean([s["success_rate"] for s in summaries.values()])))
@@ -454,7 +489,7 @@ class Trainer:
                     suffix = "" if len(summaries) == 1 else f"_{name}"
                     self.writer.add_scalar(f"eval/success_rate{suffix}", summary["success_rate"], k["updates"])
                     self.writer.add_scalar(f"eval/spl{suffix}", summary["spl"], k["updates"])
-                    bar.write(f"eval @ {k['updates']} updates, {k['episodes']} episodes, {name}: success "
+                    bar.write(f"validation @ {k['updates']} updates, {k['episodes']} episodes, {name}: success "
                               f"{summary['success_rate']:.3f}, SPL {summary['spl']:.3f}")
                 next_eval += cfg.eval_every_updates
             if now - last_ckpt > cfg.checkpoint_every_s:
@@ -470,6 +505,7 @@ class Trainer:
     def finish(self) -> Path:
         """Final evaluation on unseen seeds, then export policy.pt with its provenance."""
         cfg, k = self.cfg, self.counters
+        selected = self._restore_best_snapshot() if cfg.select_best else None
         self.log(f"final evaluation: {cfg.final_eval_episodes} episodes, seeds >= {EVAL_SEED_OFFSET}")
         summaries = self.evaluate(cfg.final_eval_episodes) if cfg.final_eval_episodes else {}
         before = self.initial_stage
@@ -482,6 +518,8 @@ class Trainer:
             "wall_time_s": round(k["wall_s"] + before.get("wall_s", 0.0), 1),
             "seed": cfg.seed, "device": cfg.device, "threads": cfg.threads,
         }
+        if selected is not None:
+            provenance["selected_snapshot"] = selected  # trained for wall_time_s; these networks are from here
         if cfg.init_from:
             provenance["stages"] = [{"init_from": cfg.init_from, **before},
                                     {"scenario": cfg.scenario, **{n: k[n] for n in ("updates", "env_steps",
