@@ -423,8 +423,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         for a, (lo, hi) in enumerate(blocks):
             for lo2, hi2 in blocks[a + 1:]:
                 if lo < hi2 and lo2 < hi:
-                    parser.error(f"port ranges overlap: base {args.base_port}+{args.n}, depth {args.depth_port}"
-                                 f"+{args.n}, gcs {args.gcs_port}")
+                    free = max(hi for _, hi in blocks)
+                    parser.error(f"port ranges overlap: base {args.base_port}..{args.base_port + args.n - 1}, depth "
+                                 f"{args.depth_port}..{args.depth_port + args.n - 1}, gcs {args.gcs_port} (with more "
+                                 f"than 10 UAVs the default GCS port 14550 is inside the base range: e.g. "
+                                 f"--gcs-port {free})")
         args.batch = max(args.batch, args.episodes)  # the in-process run then meets exactly the same episodes
     if args.plot_episodes < 0:
         parser.error(f"--plot-episodes must be >= 0, got {args.plot_episodes}")
@@ -655,6 +658,8 @@ def parse_paper_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--radius", type=positive_float, default=12.0, help="Fig. 6 circle radius in m (default 12)")
     _add_common(parser)
     args = parser.parse_args(argv)
+    if args.episodes is None:
+        args.episodes = 100
     try:
         args.policy_paths = parse_policies(args.policies)
     except ValueError as err:

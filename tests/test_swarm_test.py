@@ -246,3 +246,11 @@ def test_paper_run_is_resumable_and_reports_untrained_methods(tmp_path, contract
     changed.settings = EvalSettings(**{**changed.settings.__dict__, "seed": 1})
     assert swarm_test.run_cell(changed, out, progress=False)[1] == "computed"
     assert not math.isnan(json.loads((out / "cells" / "fig6-n4-orca.json").read_text())["summary"]["spl"])
+
+
+def test_episode_defaults_differ_for_mavlink_and_paper():
+    """In-process and paper runs fly 100 episodes by default; a real-time MAVLink run 10."""
+    assert swarm_test.parse_args([]).episodes == 100
+    assert swarm_test.parse_args(["--mavlink"]).episodes == 10
+    assert swarm_test.parse_paper_args([]).episodes == 100
+    assert swarm_test.parse_args(["--mavlink", "--episodes", "3"]).episodes == 3
