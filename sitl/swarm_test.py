@@ -34,6 +34,7 @@ import hashlib
 import json
 import math
 import os
+import signal
 import sys
 import time
 from collections.abc import Callable
@@ -820,6 +821,11 @@ def main(argv: list[str] | None = None) -> int:
         return paper_main(argv[1:])
     args = parse_args(argv)
     args.argv = argv
+    if args.mavlink:
+        # Ctrl-C and SIGTERM must reach the cleanup that stops the children, even when this
+        # process was started with SIGINT ignored (e.g. in the background of a script).
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGTERM, signal.default_int_handler)
     try:
         return run_single(args)
     except KeyboardInterrupt:  # every child process is already stopped (sitl.mavlink_swarm)
