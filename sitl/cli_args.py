@@ -64,3 +64,13 @@ def cylinder_rows(cylinders: list[list[float]] | None) -> list[list[float]] | No
     if not cylinders:
         return None
     return [[c[0], c[1], c[2], -(c[3] if len(c) == 4 else 30.0), 0.0] for c in cylinders]
+
+
+def check_camera(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Exit 2 with the reason unless ``--camera-size``, ``--hfov`` and ``--max-range`` make a valid camera."""
+    from companion.spec import CameraSpec
+
+    try:
+        CameraSpec(width=args.camera_size[0], height=args.camera_size[1], hfov_deg=args.hfov, max_range_m=args.max_range)
+    except ValueError as err:
+        parser.error(str(err))

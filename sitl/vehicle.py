@@ -34,7 +34,15 @@ import numpy as np
 
 from companion.flight_modes import AutopilotKind
 from companion.spec import CameraSpec
-from sitl.cli_args import cylinder_rows, finite_floats, image_size, positive_float, positive_int, udp_port
+from sitl.cli_args import (
+    check_camera,
+    cylinder_rows,
+    finite_floats,
+    image_size,
+    positive_float,
+    positive_int,
+    udp_port,
+)
 from sitl.camera import DepthCamera
 from sitl.collision import uav_uav_collisions
 from sitl.depth_transport import DepthFrameSender
@@ -296,10 +304,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
             load_signing_key(args.signing_key)
         except ValueError as err:
             parser.error(f"--signing-key: {err}")
-    try:
-        CameraSpec(width=args.camera_size[0], height=args.camera_size[1], hfov_deg=args.hfov, max_range_m=args.max_range)
-    except ValueError as err:
-        parser.error(str(err))
+    check_camera(parser, args)
     return args
 
 

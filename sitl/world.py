@@ -57,6 +57,7 @@ from companion.mavlink_link import normalize_connection  # noqa: E402
 from companion.spec import CameraSpec  # noqa: E402
 from sitl.camera import DepthCamera  # noqa: E402
 from sitl.cli_args import (  # noqa: E402
+    check_camera,
     cylinder_rows,
     finite_floats,
     image_size,
@@ -657,10 +658,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         parser.error("--spacing must be a finite number of metres")
     args.offsets = _offsets(args, n, parser)
     args.cylinder = cylinder_rows(args.cylinder)
-    try:
-        CameraSpec(width=args.camera_size[0], height=args.camera_size[1], hfov_deg=args.hfov, max_range_m=args.max_range)
-    except ValueError as err:
-        parser.error(str(err))
+    check_camera(parser, args)
     return args
 
 

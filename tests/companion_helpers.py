@@ -106,6 +106,37 @@ def free_udp_ports(count: int) -> list[int]:
     return ports
 
 
+def free_udp_blocks(*sizes: int, low: int = 33000, high: int = 40000) -> list[int]:
+    """The first port of each of ``sizes`` runs of consecutive free UDP ports on 127.0.0.1.
+
+    By default from 33000..39999, a range ``free_udp_ports`` (20000..32000) and the
+    PX4 defaults (14540..14650) never use.
+    """
+    rng = random.Random(os.getpid() ^ time.monotonic_ns())
+    taken: set[int] = set()
+    firsts = []
+    for size in sizes:
+        while True:
+            first = rng.randrange(low, high - size)
+            block = set(range(first, first + size))
+            if block & taken or not all(udp_port_free(p) for p in block):
+                continue
+            taken |= block
+            firsts.append(first)
+            break
+    return firsts
+
+
+def udp_port_free(port: int) -> bool:
+    """Whether UDP ``port`` on 127.0.0.1 can be bound right now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
 def env() -> dict:
     e = dict(os.environ)
     e["PYTHONPATH"] = str(REPO) + (os.pathsep + e["PYTHONPATH"] if e.get("PYTHONPATH") else "")

@@ -11,9 +11,7 @@ from __future__ import annotations
 
 import json
 import os
-import random
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -24,34 +22,15 @@ import pytest
 
 from sitl.mavlink_swarm import _records_from_trace
 from sitl.scenarios import ScenarioSample
-from tests.companion_helpers import REPO, env
+from tests.companion_helpers import REPO, env, free_udp_blocks, udp_port_free
 
 pytestmark = pytest.mark.timeout(240)
 
 
 def _port_blocks(n: int) -> tuple[int, int, int]:
-    """Free UDP blocks for base ports, depth ports and the GCS port (below the ephemeral range)."""
-    rng = random.Random(os.getpid() ^ time.monotonic_ns())
-    while True:
-        base = rng.randrange(20000, 30000, 100)
-        ports = [base + i for i in range(n)] + [base + 40 + i for i in range(n)] + [base + 80]
-        try:
-            for port in ports:
-                with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-                    s.bind(("127.0.0.1", port))
-        except OSError:
-            continue
-        return base, base + 40, base + 80
-
-
-def _ports_free(ports: list[int]) -> bool:
-    for port in ports:
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-            try:
-                s.bind(("127.0.0.1", port))
-            except OSError:
-                return False
-    return True
+    """Free UDP blocks for base ports, depth ports and the GCS port."""
+    base, depth, gcs = free_udp_blocks(n, n, 1, low=20000, high=30000)
+    return base, depth, gcs
 
 
 def _processes_mentioning(text: str) -> list[str]:
@@ -93,7 +72,7 @@ def _assert_all_gone(out: Path, ports: tuple[int, int, int], n: int) -> None:
     while _processes_mentioning(str(out)) and time.monotonic() < deadline:
         time.sleep(0.2)
     assert _processes_mentioning(str(out)) == [], "processes outlived the evaluation"
-    assert _ports_free([base + i for i in range(n)] + [depth + i for i in range(n)] + [gcs])
+    assert all(udp_port_free(p) for p in [base + i for i in range(n)] + [depth + i for i in range(n)] + [gcs])
 
 
 def test_three_uavs_fly_the_circle_over_mavlink_like_in_process(tmp_path):

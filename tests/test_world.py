@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import math
 import os
-import random
 import signal
 import socket
 import threading
@@ -23,7 +22,7 @@ import pytest
 
 from companion.depth_wire import WireFrame, decode_frame
 from companion.recording import read_recording
-from tests.companion_helpers import REPO, Processes, make_policy, read_jsonl
+from tests.companion_helpers import REPO, Processes, free_udp_blocks, make_policy, read_jsonl
 
 os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
@@ -36,35 +35,6 @@ GPS_OFF, GPS_OK = 1, 0
 
 
 # --------------------------------------------------------------------------- ports, frames, logs
-
-
-def port_blocks(*sizes: int) -> list[int]:
-    """The first port of each of ``sizes`` runs of consecutive free UDP ports on 127.0.0.1.
-
-    From 33000..39999, a range other tests' ports (20000..32000, 14540..14650) never use.
-    """
-    rng = random.Random(os.getpid() ^ time.monotonic_ns())
-    taken: set[int] = set()
-    firsts = []
-    for size in sizes:
-        while True:
-            first = rng.randrange(33000, 40000 - size)
-            block = set(range(first, first + size))
-            if block & taken or not all(_udp_free(p) for p in block):
-                continue
-            taken |= block
-            firsts.append(first)
-            break
-    return firsts
-
-
-def _udp_free(port: int) -> bool:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        try:
-            s.bind(("127.0.0.1", port))
-        except OSError:
-            return False
-    return True
 
 
 class DepthReceiver:
@@ -148,7 +118,7 @@ FACING_EAST_6M = ("--airborne", "--start", "0,0,-5", "--spacing", "6", "--yaw-de
 
 
 def test_px4_gcs_port_world_renders_each_vehicle_seeing_the_other(tmp_path):
-    gcs, base, sink, depth = port_blocks(1, 2, 2, 2)
+    gcs, base, sink, depth = free_udp_blocks(1, 2, 2, 2)
     with Processes(tmp_path) as procs:
         rx = DepthReceiver(depth, 2)
         own = DepthReceiver(sink, 2)  # here only: the stand-ins' own cameras, to compare with
@@ -191,7 +161,7 @@ def test_px4_gcs_port_world_renders_each_vehicle_seeing_the_other(tmp_path):
 
 
 def test_one_connection_per_vehicle_with_explicit_spawn_offsets(tmp_path):
-    base, sink, depth = port_blocks(2, 2, 2)
+    base, sink, depth = free_udp_blocks(2, 2, 2)
     with Processes(tmp_path) as procs:
         rx = DepthReceiver(depth, 2)
         try:
@@ -286,7 +256,7 @@ def test_default_layout_places_vehicles_by_their_global_origins(tmp_path):
     """Both report local (0, 0, -5) facing north; instance 1's origin lies 4 m north of instance 0's."""
     from sitl.world import shift_global
 
-    gcs, depth = port_blocks(1, 2)
+    gcs, depth = free_udp_blocks(1, 2)
     origin0 = (47.397742, 8.545594, 488.0)
     origin1 = shift_global(origin0, 4.0, 0.0)
     with Processes(tmp_path) as procs, FakePx4Instances(gcs, [origin0, origin1], [(0.0, 0.0, -5.0)] * 2, [0.0, 0.0]) as fake:
@@ -314,7 +284,7 @@ def test_default_layout_places_vehicles_by_their_global_origins(tmp_path):
 
 
 def test_a_companion_flies_to_its_goal_on_the_worlds_frames(tmp_path):
-    gcs, base, sink, depth = port_blocks(1, 1, 1, 1)
+    gcs, base, sink, depth = free_udp_blocks(1, 1, 1, 1)
     record = tmp_path / "flight.snrec"
     with Processes(tmp_path) as procs:
         # Hovering at 10 m; the stand-in's own camera goes nowhere. The policy is the tests' contract-following
@@ -352,7 +322,7 @@ def test_a_companion_flies_to_its_goal_on_the_worlds_frames(tmp_path):
 def test_stale_telemetry_stops_that_vehicles_frames_and_hides_its_body(tmp_path):
     from pymavlink import mavutil
 
-    gcs, base, sink, depth = port_blocks(1, 2, 2, 2)
+    gcs, base, sink, depth = free_udp_blocks(1, 2, 2, 2)
     log = tmp_path / "world.jsonl"
     with Processes(tmp_path) as procs:
         rx = DepthReceiver(depth, 2)
@@ -423,7 +393,7 @@ def test_bad_arguments_exit_2_with_the_reason(capsys):
 def test_a_busy_gcs_port_exits_1_with_the_reason(capsys):
     from sitl.world import main
 
-    (port,) = port_blocks(1)
+    (port,) = free_udp_blocks(1)
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as busy:  # as QGroundControl on 14550 would
         busy.bind(("127.0.0.1", port))
         assert main(["--px4", "1", "--gcs-host", "127.0.0.1", "--gcs-port", str(port)]) == 1
