@@ -88,8 +88,9 @@ class TrainConfig:
     vae_policy: str = _param("", "vae method: policy.pt that flies while depth images are collected")
     vae_images: int = _param(20_000, "vae method: stacked depth images to collect")
     vae_epochs: int = _param(20, "vae method: training epochs of the VAE")
-    init_from: str = _param("", "start from the networks and optimisers of another run's checkpoint.pt (a second "
-                                "curriculum stage); its updates and wall time count in this run's provenance")
+    init_from: str = _param("", "start from the networks of another run (a curriculum stage): its directory or "
+                                "checkpoint.pt (optimiser states carried over) or a validated snapshot "
+                                "snapshots/agent_<updates>.pt; its updates and wall time count in this run's provenance")
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
@@ -236,6 +237,37 @@ def plot_learning_curve(history: dict, path: Path, title: str) -> None:
     plt.close(fig)
 
 
+STAGE_COUNTERS = ("updates", "env_steps", "transitions", "episodes", "wall_s")
+
+
+def add_counters(counters: dict, earlier: dict) -> dict:
+    """A run's counters plus those of the stages it started from (provenance of curricula)."""
+    return {n: counters[n] + earlier.get(n, 0) for n in STAGE_COUNTERS}
+
+
+def snapshot_counters(snapshot: Path) -> dict:
+    """Training that went into a validated snapshot ``RUN/snapshots/agent_<updates>.pt``.
+
+    Updates and wall time come from the snapshot's row in ``validation.json``; so do
+    environment steps, transitions and episodes where the row records them (rows written
+    before it did get them scaled from the run's totals by the update count).
+    """
+    run_dir = snapshot.parent.parent
+    try:
+        rows = json.loads((snapshot.parent / "validation.json").read_text())
+        ckpt = torch.load(run_dir / "checkpoint.pt", weights_only=False)
+        row = next(r for r in rows if snapshot.name == f"agent_{r['updates']}.pt")
+    except (OSError, ValueError, StopIteration) as err:
+        raise ValueError(f"--init-from {snapshot}: not a snapshot of a run directory with its "
+                         f"validation.json and checkpoint.pt ({err})") from None
+    total = ckpt["counters"]
+    share = row["updates"] / max(total["updates"], 1)
+    counters = {"updates": row["updates"], "wall_s": row["wall_s"],
+                **{n: row.get("counters", {}).get(n, round(total[n] * share))
+                   for n in ("env_steps", "transitions", "episodes")}}
+    return add_counters(counters, ckpt.get("initial_stage", {}))
+
+
 def _atomic_save(obj, path: Path) -> None:
     tmp = path.with_suffix(".tmp")
     torch.save(obj, tmp)
@@ -333,20 +365,30 @@ class Trainer:
                  f"{self.counters['episodes']} episodes")
 
     def _init_from(self, path: Path) -> None:
-        """Start from another run's networks and optimisers; buffer and counters start afresh."""
+        """Start from another run's networks; buffer and counters start afresh.
+
+        ``path`` is a run directory or its ``checkpoint.pt`` (networks, optimiser states and
+        temperature at the end of that run) or one of its validated snapshots
+        ``snapshots/agent_<updates>.pt`` (networks and temperature; optimisers start afresh).
+        Either way this run's learning rates apply.
+        """
         if path.is_dir():
             path = path / "checkpoint.pt"
         if not path.is_file():
             raise FileNotFoundError(f"--init-from {path}: no such checkpoint")
         ckpt = torch.load(path, weights_only=False)
+        is_snapshot = "agent" not in ckpt
         try:
-            self.agent.restore(ckpt["agent"])
-        except (RuntimeError, KeyError, ValueError) as err:
+            if is_snapshot:
+                self.agent.load_state_dict(ckpt)
+            else:
+                self.agent.restore(ckpt["agent"])
+        except (RuntimeError, KeyError, ValueError, TypeError) as err:
             raise ValueError(f"--init-from {path}: its networks do not match this run's agent settings "
                              f"(method, hidden_dim, image_size, ...): {str(err)[:300]}") from None
-        earlier = ckpt.get("initial_stage", {})  # that run may itself have been a later stage
-        self.initial_stage = {n: ckpt["counters"][n] + earlier.get(n, 0)
-                              for n in ("updates", "env_steps", "transitions", "episodes", "wall_s")}
+        self.agent.apply_learning_rates()
+        self.initial_stage = snapshot_counters(path) if is_snapshot else \
+            add_counters(ckpt["counters"], ckpt.get("initial_stage", {}))  # that run may itself be a later stage
         self.log(f"initialised from {path}: {self.initial_stage['updates']} updates, "
                  f"{self.initial_stage['wall_s'] / 60:.1f} min of training")
 
@@ -377,7 +419,9 @@ class Trainer:
         index_path = folder / "validation.json"
         index = json.loads(index_path.read_text()) if index_path.exists() else []
         index = [row for row in index if row["updates"] != updates]
+        counters = {n: self.counters[n] for n in ("env_steps", "transitions", "episodes")}
         index.append({"updates": updates, "wall_s": round(time.perf_counter() - self._started, 1), "score": score,
+                      "counters": counters,
                       **{name: {"success_rate": s["success_rate"], "spl": s["spl"]} for name, s in summaries.items()}})
         index_path.write_text(json.dumps(index, indent=1))
 

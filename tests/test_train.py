@@ -205,6 +205,20 @@ def test_second_stage_starts_from_a_checkpoint_and_trains_on_mixed_scenes(tmp_pa
         if "critic" in key and key.endswith("weight") and "target" not in key:
             assert (stage2["agent"]["model"][key] - w1).abs().max() < 0.015, key
 
+    # A third stage from a validated snapshot, at another learning rate than the optimiser states were saved with.
+    snapshot = second / "snapshots" / "agent_5.pt"
+    done = run(tmp_path / "stage3", "--total-updates", "5", "--init-from", str(snapshot), "--actor-lr", "2e-4",
+               "--critic-lr", "3e-4")
+    assert done.returncode == 0, done.stderr
+    assert f"initialised from {snapshot}: 20 updates" in done.stderr  # 15 of stage 1 + 5 of stage 2
+    final3 = json.loads((tmp_path / "stage3" / "final_eval.json").read_text())
+    assert final3["updates"] == 25 and final3["stages"][0]["updates"] == 20
+    assert final3["stages"][0]["transitions"] == stage1["counters"]["transitions"] + validations[0]["counters"][
+        "transitions"]
+    optimizers = torch.load(tmp_path / "stage3" / "checkpoint.pt", weights_only=False)["agent"]["optimizers"]
+    assert optimizers["actor_optimizer"]["param_groups"][0]["lr"] == pytest.approx(2e-4)
+    assert optimizers["critic_optimizer"]["param_groups"][0]["lr"] == pytest.approx(3e-4)
+
     wrong = run(tmp_path / "stage2b", "--total-updates", "10", "--hidden-dim", "64", "--init-from", str(first))
     assert wrong.returncode == 2 and "do not match this run's agent settings" in wrong.stderr
     assert not (tmp_path / "stage2b").exists()

@@ -256,3 +256,14 @@ class SacAeAgent(nn.Module):
         self.updates = checkpoint["updates"]
         for name, opt in self.optimizers().items():
             opt.load_state_dict(checkpoint["optimizers"][name])
+
+    def apply_learning_rates(self) -> None:
+        """Set every optimiser's learning rate from this agent's config.
+
+        A restored optimiser state carries the learning rate it was saved with; a later
+        curriculum stage (``--init-from``) may ask for another one.
+        """
+        for name, opt in self.optimizers().items():
+            lr = getattr(self.config, name.replace("_optimizer", "_lr"))
+            for group in opt.param_groups:
+                group["lr"] = lr

@@ -1,0 +1,48 @@
+"""sitl.collision_anatomy: the frustum test and the classification of real collisions."""
+
+import json
+import math
+
+import numpy as np
+
+from sitl.collision_anatomy import in_view, main
+
+HALF_PI = math.pi / 2
+
+
+def test_in_view_is_the_level_camera_frustum_of_the_heading():
+    fov, rng = math.radians(90), 20.0
+    east = np.array([0.0, 5.0, 0.0])  # 5 m east of a UAV at the origin
+    assert in_view(np.zeros(3), np.array(HALF_PI), east, fov, fov, rng)  # facing east: straight ahead
+    assert not in_view(np.zeros(3), np.array(0.0), east, fov, fov, rng)  # facing north: 90 deg to the right
+    assert not in_view(np.zeros(3), np.array(-HALF_PI), east, fov, fov, rng)  # facing west: behind
+    assert in_view(np.zeros(3), np.array(math.radians(50)), east, fov, fov, rng)  # 40 deg to the left
+    assert not in_view(np.zeros(3), np.array(HALF_PI), np.array([0.0, 5.0, -5.5]), fov, fov, rng)  # too high
+    assert in_view(np.zeros(3), np.array(HALF_PI), np.array([0.0, 5.0, 4.5]), fov, fov, rng)  # below, inside
+    assert not in_view(np.zeros(3), np.array(HALF_PI), np.array([0.0, 25.0, 0.0]), fov, fov, rng)  # beyond range
+
+
+def test_head_on_collisions_are_seen_by_both(tmp_path, capsys):
+    """Two UAVs flying straight at each other: every collision is one each saw coming, mid-way."""
+    out = tmp_path / "anatomy.json"
+    assert main(["--policy", "straight", "--scenario", "circle", "--n", "2", "--episodes", "10",
+                 "--json", str(out)]) == 0
+    result = json.loads(out.read_text())
+    summary = result["summary"]
+    assert result["collisions"] >= 10  # at least half of the 10 pairs meet (jitter can make some miss)
+    assert result["collisions"] == len(result["events"]) and result["collisions"] % 2 == 0
+    assert summary["collider_saw_partner"] == result["collisions"] and summary["neither_saw"] == 0
+    assert all(4.0 < e["time_s"] < 8.0 for e in result["events"])  # 24 m closing at up to 4 m/s
+    assert summary["time_5_inf_s"] + summary["time_2_5_s"] == result["collisions"]
+    assert "| all UAV-UAV collisions |" in capsys.readouterr().out
+
+
+def test_bad_arguments_are_refused(capsys):
+    for argv in (["--episodes", "0"], ["--n", "1"], ["--density", "huge"]):
+        try:
+            main(argv)
+        except SystemExit as exit_:
+            assert exit_.code == 2
+        else:
+            raise AssertionError(f"{argv} accepted")
+    assert "--episodes must be in 1..200" in capsys.readouterr().err
