@@ -83,7 +83,12 @@ def analyse(policy: str, settings: EvalSettings) -> dict:
                       for t in window)
             seen = any(in_view(positions[t][partner], yaws[t][partner], positions[t][r], hfov, vfov,
                                cam.max_range_m) for t in window)
+            velocity = (positions[-1] - positions[-2]) / config.control_period_s
+            gap_rate = np.dot(velocity[partner] - velocity[r], positions[-2][partner] - positions[-2][r]) / max(
+                np.linalg.norm(positions[-2][partner] - positions[-2][r]), 1e-6)
             events.append({"episode": int(world), "uav": int(r % n), "partner": int(partner % n),
+                           "speed_m_s": round(float(np.linalg.norm(velocity[r])), 2),
+                           "closing_speed_m_s": round(float(-gap_rate), 2),
                            "time_s": round(step * config.control_period_s, 2), "collider_saw_partner": bool(saw),
                            "partner_saw_collider": bool(seen), "partner_was_done": bool(not acting[partner])})
     uav_episodes = settings.episodes * n
@@ -101,10 +106,14 @@ def summarize_events(events: list[dict], uav_episodes: int) -> dict:
         "neither_saw": count(lambda e: not e["collider_saw_partner"] and not e["partner_saw_collider"]),
         "with_a_finished_uav": count(lambda e: e["partner_was_done"]),
     }
+    for name, pick in (("saw", lambda e: e["collider_saw_partner"]), ("did_not_see", lambda e: not e["collider_saw_partner"])):
+        speeds = [e["speed_m_s"] for e in events if pick(e)]
+        out[f"median_speed_when_{name}_m_s"] = float(np.median(speeds)) if speeds else float("nan")
+    out["median_closing_speed_m_s"] = float(np.median([e["closing_speed_m_s"] for e in events])) if events else float("nan")
     edges = (0.0, *TIME_BINS_S, math.inf)
     for lo, hi in zip(edges[:-1], edges[1:]):
         out[f"time_{lo:g}_{hi:g}_s"] = count(lambda e, lo=lo, hi=hi: lo < e["time_s"] <= hi)
-    out["rates"] = {k: v / uav_episodes for k, v in out.items()}
+    out["rates"] = {k: v / uav_episodes for k, v in out.items() if not k.startswith("median")}
     return out
 
 
@@ -120,6 +129,9 @@ def format_table(result: dict) -> str:
     lines = [f"{result['policy']}: {result['scenario']} ({result['uav_episodes']} UAV-episodes)",
              "| | UAVs | share of collisions | per UAV-episode |", "| --- | --- | --- | --- |"]
     lines += [f"| {name} | {v} | {v / total:.2f} | {v / result['uav_episodes']:.3f} |" for name, v in rows]
+    lines.append(f"median speed at the collision: {s['median_speed_when_saw_m_s']:.2f} m/s when the collider had "
+                 f"the partner in view, {s['median_speed_when_did_not_see_m_s']:.2f} m/s when not; median closing "
+                 f"speed {s['median_closing_speed_m_s']:.2f} m/s")
     return "\n".join(lines)
 
 

@@ -533,7 +533,8 @@ class Trainer:
                     suffix = "" if len(summaries) == 1 else f"_{name}"
                     self.writer.add_scalar(f"eval/success_rate{suffix}", summary["success_rate"], k["updates"])
                     self.writer.add_scalar(f"eval/spl{suffix}", summary["spl"], k["updates"])
-                    bar.write(f"validation @ {k['updates']} updates, {k['episodes']} episodes, {name}: success "
+                    bar.write(f"validation @ {k['updates']} updates ({k['episodes']} training episodes), {name} "
+                              f"({cfg.eval_episodes} episodes): success "
                               f"{summary['success_rate']:.3f}, SPL {summary['spl']:.3f}")
                 next_eval += cfg.eval_every_updates
             if now - last_ckpt > cfg.checkpoint_every_s:

@@ -34,6 +34,8 @@ def test_head_on_collisions_are_seen_by_both(tmp_path, capsys):
     assert summary["collider_saw_partner"] == result["collisions"] and summary["neither_saw"] == 0
     assert all(4.0 < e["time_s"] < 8.0 for e in result["events"])  # 24 m closing at up to 4 m/s
     assert summary["time_5_inf_s"] + summary["time_2_5_s"] == result["collisions"]
+    # Both fly straight at full speed (2 m/s) into each other.
+    assert 1.8 < summary["median_speed_when_saw_m_s"] <= 2.05 and 3.5 < summary["median_closing_speed_m_s"] <= 4.1
     assert "| all UAV-UAV collisions |" in capsys.readouterr().out
 
 
