@@ -7,8 +7,8 @@ Measures, on this machine's CPU (``--threads`` torch threads):
 * rollout throughput of the training loop: vectorised environment steps with the actor's
   sampled actions for the default preset's worlds of 8 UAVs (transitions per second).
 
-The last line is one JSON object with ``updates_per_s`` (default preset: sac_ae, 32x32,
-1024 hidden units) and ``env_steps_per_s`` (agent transitions per second while acting),
+The last line is one JSON object with ``updates_per_s`` (default ``fast`` preset: sac_ae,
+32x32, its hidden units) and ``env_steps_per_s`` (agent transitions per second while acting),
 plus every configuration measured.
 
 Usage: ``python benchmarks/train_speed.py [--sizes 32 64] [--methods sac_ae cnn drq] [--seconds 10]``
@@ -26,7 +26,7 @@ import torch
 from companion.spec import DEFAULT_ACTION_SPEC, CameraSpec
 from sitl.rl.agent import AgentConfig, SacAeAgent
 from sitl.rl.buffer import FrameReplayBuffer
-from sitl.train import TrainConfig, make_sim_config
+from sitl.train import PRESETS, TrainConfig, make_sim_config
 from sitl.env import SwarmEnv
 
 
@@ -86,8 +86,10 @@ def main() -> None:
     cfg = TrainConfig()
     print(f"rollouts ({cfg.num_worlds} worlds x {cfg.num_uavs} UAVs, actor sampling): {env_rate:.0f} transitions/s",
           flush=True)
-    default = rates.get("sac_ae_32px_h1024")
+    fast_hidden = PRESETS["fast"]["agent"]["hidden_dim"]
+    default = rates.get(f"sac_ae_32px_h{fast_hidden}")
     print(json.dumps({"benchmark": "train_speed", "threads": args.threads, "updates_per_s": default,
+                      "updates_per_s_config": f"sac_ae_32px_h{fast_hidden}",
                       "env_steps_per_s": round(env_rate), "updates_per_s_by_config": rates}))
 
 

@@ -737,7 +737,7 @@ def paper_cells(episodes: int, seed: int, dynamics: str, camera_noise: bool, max
     fig6 = []
     circle = ScenarioConfig(name="circle", circle_radius_m=radius)
     for n in ns:
-        for m in ("sac_ae", "orca", "straight"):
+        for m in ("sac_ae", "vae", "orca", "straight"):  # the paper's Fig. 6 compares ours with RL+VAE
             fig6.append(PaperCell(f"fig6-n{n}-{m}", m, specs[m], EvalSettings(scenario=circle, num_uavs=n, **common),
                                   plot=True))
     return table, fig6

@@ -220,7 +220,8 @@ def test_paper_run_is_resumable_and_reports_untrained_methods(tmp_path, contract
     table, fig6 = paper_cells(episodes=1, seed=0, dynamics="kinematic", camera_noise=False, max_steps=40, batch=1,
                               policy_paths=policies, table_n=3, densities=["medium"], ns=[3, 4], radius=6.0)
     assert [c.method for c in table] == ["sac_ae", "cnn", "vae", "orca", "straight"]
-    assert [(c.settings.num_uavs, c.method) for c in fig6][:3] == [(3, "sac_ae"), (3, "orca"), (3, "straight")]
+    assert [(c.settings.num_uavs, c.method) for c in fig6][:4] == [(3, "sac_ae"), (3, "vae"), (3, "orca"),
+                                                                    (3, "straight")]
     out = tmp_path / "paper"
     first = run_paper(out, table, fig6, progress=False, policy_paths=policies)
     assert first["status"]["table2-medium-cnn"] == "not trained"
@@ -239,7 +240,7 @@ def test_paper_run_is_resumable_and_reports_untrained_methods(tmp_path, contract
                  "--policies", ",".join(f"{m}={p}" for m, p in policies.items()), "--table-n", "3",
                  "--densities", "medium", "--ns", "3,4", "--radius", "6", "--threads", "1", "--no-progress"])
     assert code == 0
-    assert "0 computed, 9 reused, 2 not trained" in capsys.readouterr().out
+    assert "0 computed, 9 reused, 4 not trained" in capsys.readouterr().out
     assert (out / "cells" / "fig6-n4-orca.json").stat().st_mtime_ns == mtime
     # Other settings are a different cell: it is computed again, not reused.
     changed = [c for c in fig6 if c.name == "fig6-n4-orca"][0]

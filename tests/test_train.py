@@ -18,7 +18,7 @@ from companion.spec import DEFAULT_ACTION_SPEC, CameraSpec
 from sitl.rl.agent import AgentConfig, SacAeAgent
 from sitl.rl.buffer import FrameReplayBuffer
 from sitl.rl.vae import train_vae
-from sitl.train import parse_args
+from sitl.train import parse_args, snapshot_counters
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -224,3 +224,23 @@ def test_second_stage_starts_from_a_checkpoint_and_trains_on_mixed_scenes(tmp_pa
     assert not (tmp_path / "stage2b").exists()
     missing = run(tmp_path / "stage2c", "--total-updates", "10", "--init-from", str(tmp_path / "nowhere"))
     assert missing.returncode == 2 and "no such checkpoint" in missing.stderr
+
+
+def test_snapshot_counters_of_older_validation_rows_are_scaled_from_the_run(tmp_path):
+    """Rows written before validation.json kept counters: updates and wall time are exact, the rest scaled."""
+    run_dir = tmp_path / "run"
+    (run_dir / "snapshots").mkdir(parents=True)
+    counters = {"updates": 8000, "env_steps": 8100, "transitions": 200_000, "episodes": 320, "wall_s": 2400.0}
+    earlier = {"updates": 12_000, "env_steps": 12_100, "transitions": 250_000, "episodes": 870, "wall_s": 3000.0}
+    torch.save({"counters": counters, "initial_stage": earlier}, run_dir / "checkpoint.pt")
+    rows = [{"updates": 2000, "wall_s": 610.0, "score": 0.5},
+            {"updates": 4000, "wall_s": 1200.0, "score": 0.7, "counters": {"env_steps": 4050, "transitions": 99_000,
+                                                                          "episodes": 150}}]
+    (run_dir / "snapshots" / "validation.json").write_text(json.dumps(rows))
+    old = snapshot_counters(run_dir / "snapshots" / "agent_2000.pt")
+    assert old == {"updates": 14_000, "wall_s": 3610.0, "env_steps": 12_100 + 2025, "transitions": 250_000 + 50_000,
+                   "episodes": 870 + 80}
+    new = snapshot_counters(run_dir / "snapshots" / "agent_4000.pt")
+    assert new["transitions"] == 250_000 + 99_000 and new["episodes"] == 870 + 150 and new["updates"] == 16_000
+    with pytest.raises(ValueError, match="not a snapshot of a run directory"):
+        snapshot_counters(run_dir / "snapshots" / "agent_3000.pt")
