@@ -28,6 +28,7 @@ import os
 import shutil
 import sys
 import time
+import warnings
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
@@ -376,7 +377,16 @@ class Trainer:
             path = path / "checkpoint.pt"
         if not path.is_file():
             raise FileNotFoundError(f"--init-from {path}: no such checkpoint")
-        ckpt = torch.load(path, weights_only=False)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # torch.load's note on TorchScript archives: refused below
+                ckpt = torch.load(path, weights_only=False)
+        except Exception as err:  # noqa: BLE001 - any unreadable file gets the same clear refusal
+            raise ValueError(f"--init-from {path}: not a readable training checkpoint ({err})") from None
+        if not isinstance(ckpt, dict):
+            raise ValueError(f"--init-from {path}: not a training checkpoint or snapshot but a "
+                             f"{type(ckpt).__name__} (an exported policy.pt cannot be trained further; "
+                             "pass the run directory it came from)")
         is_snapshot = "agent" not in ckpt
         try:
             if is_snapshot:

@@ -224,6 +224,9 @@ def test_second_stage_starts_from_a_checkpoint_and_trains_on_mixed_scenes(tmp_pa
     assert not (tmp_path / "stage2b").exists()
     missing = run(tmp_path / "stage2c", "--total-updates", "10", "--init-from", str(tmp_path / "nowhere"))
     assert missing.returncode == 2 and "no such checkpoint" in missing.stderr
+    exported = run(tmp_path / "stage2d", "--total-updates", "10", "--init-from", str(first / "policy.pt"))
+    assert exported.returncode == 2 and "an exported policy.pt cannot be trained further" in exported.stderr
+    assert not (tmp_path / "stage2d").exists()
 
 
 def test_snapshot_counters_of_older_validation_rows_are_scaled_from_the_run(tmp_path):
