@@ -20,13 +20,15 @@ import argparse
 import json
 import math
 import sys
+from collections import deque
 from pathlib import Path
 
 import numpy as np
 
-from sitl.config import DENSITIES, ScenarioConfig
+from sitl.config import DENSITIES, ScenarioConfig, SimConfig
 from sitl.env import COLLISION_UAV, SwarmEnv
-from sitl.swarm_test import DEFAULT_POLICY, EvalSettings, EvaluationError, resolve_method, sim_config_for
+from sitl.swarm_test import (DEFAULT_POLICY, EvalSettings, EvaluationError, evaluate_method, resolve_method,
+                             sim_config_for)
 
 LOOKBACK_S = 1.0  # "could have seen it coming": in view at some step of this window before the collision
 TIME_BINS_S = (1.0, 2.0, 5.0)  # collision time since the episode start, for the table
@@ -47,53 +49,68 @@ def in_view(pos_ned: np.ndarray, yaw_rad: np.ndarray, other_ned: np.ndarray, hfo
             & (np.abs(np.arctan2(down, fwd)) <= vfov_rad / 2) & (np.linalg.norm(d, axis=-1) <= max_range_m))
 
 
-def analyse(policy: str, settings: EvalSettings) -> dict:
-    """Fly ``settings.episodes`` episodes at once and classify every UAV-UAV collision."""
-    if settings.episodes > settings.batch_worlds:
-        raise EvaluationError("collision_anatomy flies all episodes at once: --episodes must be <= --batch")
-    method = resolve_method(policy)
-    config = sim_config_for(method, settings, settings.episodes)
-    env = SwarmEnv(config, seed=settings.env_seed)
-    obs = env.reset()
-    actor = method.make_actor(env)
-    cam = config.camera
-    hfov = math.radians(cam.hfov_deg)
-    vfov = 2 * math.atan(math.tan(hfov / 2) * cam.height / cam.width)
-    lookback = max(1, round(LOOKBACK_S / config.control_period_s))
-    n = config.num_uavs
-    positions, yaws = [env.dynamics.pos_ned.copy()], [env.dynamics.yaw_rad.copy()]
-    events = []
-    step = 0
-    while not env.world_done.all():
-        acting = env.acting.copy()
-        obs, _, _, _, info = env.step(actor(env, obs))
-        step += 1
-        positions.append(env.dynamics.pos_ned.copy())
-        yaws.append(env.dynamics.yaw_rad.copy())
+class CollisionObserver:
+    """Records, around every control step, what it needs to classify UAV-UAV collisions.
+
+    Keeps the poses of the last ``lookback`` steps (tagged with each world's episode, as
+    worlds restart with new episodes between steps) rather than whole episodes, so any
+    number of episodes can be analysed.
+    """
+
+    def __init__(self, config: SimConfig) -> None:
+        cam = config.camera
+        self.hfov = math.radians(cam.hfov_deg)
+        self.vfov = 2 * math.atan(math.tan(self.hfov / 2) * cam.height / cam.width)
+        self.max_range_m = cam.max_range_m
+        self.dt = config.control_period_s
+        self.n = config.num_uavs
+        self.recent: deque[tuple[np.ndarray, np.ndarray, np.ndarray]] = deque(
+            maxlen=max(1, round(LOOKBACK_S / self.dt)))
+        self.events: list[dict] = []
+        self._acting = np.zeros(0, dtype=bool)
+
+    def before_step(self, env: SwarmEnv) -> None:
+        self._acting = env.acting.copy()
+        self.recent.append((env.dynamics.pos_ned.copy(), env.dynamics.yaw_rad.copy(), env.world_episode.copy()))
+
+    def after_step(self, env: SwarmEnv, info: dict) -> None:
+        n, acting = self.n, self._acting
+        before, after = self.recent[-1][0], env.dynamics.pos_ned
         for r in np.flatnonzero(acting & (info["outcome"] == COLLISION_UAV)):
             world = r // n
             rows = np.arange(world * n, (world + 1) * n)
             rows = rows[rows != r]
             # The partner: the nearest other UAV over the step (the crash check is continuous).
-            gap = np.minimum(np.linalg.norm(positions[-2][rows] - positions[-2][r], axis=1),
-                             np.linalg.norm(positions[-1][rows] - positions[-1][r], axis=1))
+            gap = np.minimum(np.linalg.norm(before[rows] - before[r], axis=1),
+                             np.linalg.norm(after[rows] - after[r], axis=1))
             partner = int(rows[np.argmin(gap)])
-            window = range(max(0, step - lookback), step)
-            saw = any(in_view(positions[t][r], yaws[t][r], positions[t][partner], hfov, vfov, cam.max_range_m)
-                      for t in window)
-            seen = any(in_view(positions[t][partner], yaws[t][partner], positions[t][r], hfov, vfov,
-                               cam.max_range_m) for t in window)
-            velocity = (positions[-1] - positions[-2]) / config.control_period_s
-            gap_rate = np.dot(velocity[partner] - velocity[r], positions[-2][partner] - positions[-2][r]) / max(
-                np.linalg.norm(positions[-2][partner] - positions[-2][r]), 1e-6)
-            events.append({"episode": int(world), "uav": int(r % n), "partner": int(partner % n),
-                           "speed_m_s": round(float(np.linalg.norm(velocity[r])), 2),
-                           "closing_speed_m_s": round(float(-gap_rate), 2),
-                           "time_s": round(step * config.control_period_s, 2), "collider_saw_partner": bool(saw),
-                           "partner_saw_collider": bool(seen), "partner_was_done": bool(not acting[partner])})
-    uav_episodes = settings.episodes * n
+            episode = int(env.world_episode[world])
+            window = [(pos, yaw) for pos, yaw, episodes in self.recent if episodes[world] == episode]
+            saw = any(in_view(pos[r], yaw[r], pos[partner], self.hfov, self.vfov, self.max_range_m)
+                      for pos, yaw in window)
+            seen = any(in_view(pos[partner], yaw[partner], pos[r], self.hfov, self.vfov, self.max_range_m)
+                       for pos, yaw in window)
+            velocity = (after - before) / self.dt
+            offset = before[partner] - before[r]
+            gap_rate = np.dot(velocity[partner] - velocity[r], offset) / max(np.linalg.norm(offset), 1e-6)
+            self.events.append({"episode": episode, "uav": int(r % n), "partner": int(partner % n),
+                                "speed_m_s": round(float(np.linalg.norm(velocity[r])), 2),
+                                "closing_speed_m_s": round(float(-gap_rate), 2),
+                                "time_s": round(int(env.world_steps[world]) * self.dt, 2),
+                                "collider_saw_partner": bool(saw), "partner_saw_collider": bool(seen),
+                                "partner_was_done": bool(not acting[partner])})
+
+
+def analyse(policy: str, settings: EvalSettings, progress: bool = False) -> dict:
+    """Fly ``settings.episodes`` episodes (as ``swarm_test`` does) and classify every UAV-UAV collision."""
+    method = resolve_method(policy)
+    observer = CollisionObserver(sim_config_for(method, settings, 1))
+    result = evaluate_method(method, settings, progress=progress, desc="collision anatomy", observer=observer)
+    uav_episodes = settings.episodes * settings.num_uavs
+    events = sorted(observer.events, key=lambda e: (e["episode"], e["time_s"], e["uav"]))
     return {"policy": policy, "scenario": settings.describe(), "uav_episodes": uav_episodes,
-            "lookback_s": LOOKBACK_S, "collisions": len(events), "events": events,
+            "lookback_s": LOOKBACK_S, "collisions": len(events),
+            "collision_uav_rate": result.summary["collision_uav_rate"], "events": events,
             "summary": summarize_events(events, uav_episodes)}
 
 
@@ -142,17 +159,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--density", choices=tuple(DENSITIES), default="medium")
     parser.add_argument("--radius", type=float, default=12.0, help="circle radius (m)")
     parser.add_argument("--n", type=int, default=8, help="UAVs per episode")
-    parser.add_argument("--episodes", type=int, default=100, help="episodes (all flown at once, <= 200)")
+    parser.add_argument("--episodes", type=int, default=100, help="episodes")
     parser.add_argument("--seed", type=int, default=0, help="evaluation seed (episodes of 1,000,000 + seed)")
     parser.add_argument("--json", type=Path, help="write the result with every collision here")
     args = parser.parse_args(argv)
-    if not 1 <= args.episodes <= 200 or args.n < 2:
-        parser.error("--episodes must be in 1..200 and --n at least 2")
+    if args.episodes < 1 or args.n < 2:
+        parser.error("--episodes must be at least 1 and --n at least 2")
     scenario = ScenarioConfig(name=args.scenario, density=DENSITIES[args.density], circle_radius_m=args.radius)
     settings = EvalSettings(scenario=scenario, num_uavs=args.n, episodes=args.episodes, seed=args.seed,
-                            batch_worlds=200, record_paths=False)
+                            record_paths=False)
     try:
-        result = analyse(args.policy, settings)
+        result = analyse(args.policy, settings, progress=True)
     except EvaluationError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -40,6 +40,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
@@ -263,8 +264,16 @@ def collision_rate(summary: dict) -> float:
     return 1.0 - summary["success_rate"]
 
 
+class StepObserver(Protocol):
+    """Sees every control step of an evaluation (for analyses that need more than the records)."""
+
+    def before_step(self, env: SwarmEnv) -> None: ...
+
+    def after_step(self, env: SwarmEnv, info: dict) -> None: ...
+
+
 def evaluate_method(method: Method, settings: EvalSettings, progress: bool = True, desc: str | None = None,
-                    leave: bool = True) -> EvalResult:
+                    leave: bool = True, observer: StepObserver | None = None) -> EvalResult:
     """Fly ``settings.episodes`` episodes with ``method`` and summarise them.
 
     Up to ``batch_worlds`` episodes fly at once as parallel worlds; a world that finishes
@@ -272,7 +281,8 @@ def evaluate_method(method: Method, settings: EvalSettings, progress: bool = Tru
     whole batch. Scenarios come from the env's generator seeded with ``EVAL_SEED_OFFSET +
     seed``: with perfect depth every controller meets the same sequence of episodes
     (episode ``k`` is the ``k``-th drawn), and with ``episodes <= batch_worlds`` they are
-    exactly the trainer's final-evaluation episodes for the same scenario.
+    exactly the trainer's final-evaluation episodes for the same scenario. ``observer`` is
+    called around every ``env.step`` (worlds that restart do so between two steps).
     """
     from tqdm import tqdm
 
@@ -304,7 +314,12 @@ def evaluate_method(method: Method, settings: EvalSettings, progress: bool = Tru
                 done = env.world_done
             if done.all():
                 break
-            obs, *_ = env.step(actor(env, obs))
+            if observer is None:
+                obs, *_ = env.step(actor(env, obs))
+                continue
+            observer.before_step(env)
+            obs, _, _, _, info = env.step(actor(env, obs))
+            observer.after_step(env, info)
     wall = time.perf_counter() - started
     records = env.finish()
     return EvalResult(method, settings, config, records, summarize(records), wall)
