@@ -419,6 +419,27 @@ class Trainer:
                                seed=seed_offset + self.cfg.seed)
                 for name in evaluation_scenarios(self.cfg)}
 
+    def validate(self, write=print) -> None:
+        """Evaluate on the validation seeds, log it, and keep a snapshot when selecting the best."""
+        cfg, k = self.cfg, self.counters
+        summaries = self.evaluate(cfg.eval_episodes, VALIDATION_SEED_OFFSET)
+        if cfg.select_best:
+            self._keep_snapshot(summaries)
+        self.history["eval_episode"].append(k["episodes"])
+        # The curve shows the mean over the evaluation scenarios; TensorBoard each one.
+        self.history["eval_success"].append(float(np.mean([s["success_rate"] for s in summaries.values()])))
+        self.history["eval_spl"].append(float(np.mean([s["spl"] for s in summaries.values()])))
+        for name, summary in summaries.items():
+            suffix = "" if len(summaries) == 1 else f"_{name}"
+            self.writer.add_scalar(f"eval/success_rate{suffix}", summary["success_rate"], k["updates"])
+            self.writer.add_scalar(f"eval/spl{suffix}", summary["spl"], k["updates"])
+            write(f"validation @ {k['updates']} updates ({k['episodes']} training episodes), {name} "
+                  f"({cfg.eval_episodes} episodes): success {summary['success_rate']:.3f}, SPL {summary['spl']:.3f}")
+
+    def _validated_updates(self) -> set[int]:
+        index_path = self.run_dir / "snapshots" / "validation.json"
+        return {row["updates"] for row in json.loads(index_path.read_text())} if index_path.exists() else set()
+
     def _keep_snapshot(self, summaries: dict[str, dict]) -> None:
         """Save the networks with their validation result (``select_best``)."""
         folder = self.run_dir / "snapshots"
@@ -532,20 +553,7 @@ class Trainer:
                                 sps=f"{env_rate:.0f}", ups=f"{upd_rate:.2f}")
                 window_t, window_steps, window_updates = now, 0, 0
             if k["updates"] >= next_eval:
-                summaries = self.evaluate(cfg.eval_episodes, VALIDATION_SEED_OFFSET)
-                if cfg.select_best:
-                    self._keep_snapshot(summaries)
-                self.history["eval_episode"].append(k["episodes"])
-                # The curve shows the mean over the evaluation scenarios; TensorBoard each one.
-                self.history["eval_success"].append(float(np.mean([s["success_rate"] for s in summaries.values()])))
-                self.history["eval_spl"].append(float(np.mean([s["spl"] for s in summaries.values()])))
-                for name, summary in summaries.items():
-                    suffix = "" if len(summaries) == 1 else f"_{name}"
-                    self.writer.add_scalar(f"eval/success_rate{suffix}", summary["success_rate"], k["updates"])
-                    self.writer.add_scalar(f"eval/spl{suffix}", summary["spl"], k["updates"])
-                    bar.write(f"validation @ {k['updates']} updates ({k['episodes']} training episodes), {name} "
-                              f"({cfg.eval_episodes} episodes): success "
-                              f"{summary['success_rate']:.3f}, SPL {summary['spl']:.3f}")
+                self.validate(write=bar.write)
                 next_eval += cfg.eval_every_updates
             if now - last_ckpt > cfg.checkpoint_every_s:
                 k["wall_s"] = time.perf_counter() - started
@@ -560,6 +568,10 @@ class Trainer:
     def finish(self) -> Path:
         """Final evaluation on unseen seeds, then export policy.pt with its provenance."""
         cfg, k = self.cfg, self.counters
+        if cfg.select_best and cfg.eval_every_updates and k["updates"] not in self._validated_updates():
+            # The last networks are candidates too, also when the run does not end on a validation.
+            self.validate(write=self.log)
+            self.save_checkpoint()  # its history (and learning curve) now include that validation
         selected = self._restore_best_snapshot() if cfg.select_best else None
         self.log(f"final evaluation: {cfg.final_eval_episodes} episodes, seeds >= {EVAL_SEED_OFFSET}")
         summaries = self.evaluate(cfg.final_eval_episodes) if cfg.final_eval_episodes else {}

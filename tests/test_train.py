@@ -185,25 +185,28 @@ def test_second_stage_starts_from_a_checkpoint_and_trains_on_mixed_scenes(tmp_pa
     done = run(first, "--total-updates", "15")
     assert done.returncode == 0, done.stderr
     stage1 = torch.load(first / "checkpoint.pt", weights_only=False)
-    done = run(second, "--total-updates", "10", "--scenario", "mixed", "--init-from", str(first),
+    done = run(second, "--total-updates", "12", "--scenario", "mixed", "--init-from", str(first),
                "--eval-every-updates", "5", "--eval-episodes", "2", "--select-best")
     assert done.returncode == 0, done.stderr
     assert f"initialised from {first / 'checkpoint.pt'}: 15 updates" in done.stderr
     final = json.loads((second / "final_eval.json").read_text())
-    assert final["updates"] == 25 and final["stages"][0]["updates"] == 15 and final["stages"][1]["updates"] == 10
+    assert final["updates"] == 27 and final["stages"][0]["updates"] == 15 and final["stages"][1]["updates"] == 12
     assert final["wall_time_s"] > final["stages"][1]["wall_s"]
     assert final["evaluation"]["scenario"] == "random" and final["evaluation_circle"]["scenario"] == "circle"
-    # --select-best: both validations were kept and the exported networks are the better one's.
+    # --select-best: every validation was kept, the last networks (12 updates, between validations) were
+    # validated too, and the exported networks are the best one's.
     validations = json.loads((second / "snapshots" / "validation.json").read_text())
-    assert [v["updates"] for v in validations] == [5, 10]
+    assert [v["updates"] for v in validations] == [5, 10, 12]
+    assert (second / "snapshots" / "agent_12.pt").exists()
     best = max(validations, key=lambda v: (v["score"], v["updates"]))
     assert final["selected_snapshot"]["updates"] == best["updates"]
-    # It really continued from stage 1's weights: 10 Adam steps at lr 1e-3 move each weight by at most ~0.01,
-    # while a fresh initialisation would differ by ~0.1 everywhere.
+    # It really continued from stage 1's weights: 12 updates of Adam at lr 1e-3 move each weight by at most
+    # ~0.012 (~0.024 for the shared encoder, which the decoder's optimiser also steps), while a fresh
+    # initialisation would differ by ~0.1 everywhere.
     stage2 = torch.load(second / "checkpoint.pt", weights_only=False)
     for key, w1 in stage1["agent"]["model"].items():
         if "critic" in key and key.endswith("weight") and "target" not in key:
-            assert (stage2["agent"]["model"][key] - w1).abs().max() < 0.015, key
+            assert (stage2["agent"]["model"][key] - w1).abs().max() < 0.03, key
 
     # A third stage from a validated snapshot, at another learning rate than the optimiser states were saved with.
     snapshot = second / "snapshots" / "agent_5.pt"
