@@ -36,6 +36,25 @@ def spl(records: list[UAVRecord]) -> float:
     return float(np.mean(terms))
 
 
+def success_half_width(records: list[UAVRecord], z: float = 1.96) -> float:
+    """Half-width of the ~95 % confidence interval of the success rate, clustered by episode.
+
+    UAVs of one episode share its geometry (and collide in pairs), so they are not
+    independent trials: the standard error is the ratio estimator's over episodes,
+    ``sqrt(E / (E - 1) * sum_e (s_e - p * n_e)^2) / N`` for episodes ``e`` with ``n_e`` UAVs
+    and ``s_e`` successes (``N`` UAVs in all). NaN with fewer than two episodes.
+    """
+    by_episode: dict[int, list[int]] = {}
+    for r in records:
+        by_episode.setdefault(r.episode, []).append(r.success)
+    if len(by_episode) < 2:
+        return float("nan")
+    n = np.array([len(v) for v in by_episode.values()], dtype=float)
+    s = np.array([sum(v) for v in by_episode.values()], dtype=float)
+    rate, count = s.sum() / n.sum(), len(n)
+    return float(z * np.sqrt(count / (count - 1) * np.sum((s - rate * n) ** 2)) / n.sum())
+
+
 def _mean_std(values: list[float]) -> dict[str, float]:
     if not values:
         return {"mean": float("nan"), "std": float("nan")}
@@ -45,7 +64,8 @@ def _mean_std(values: list[float]) -> dict[str, float]:
 def summarize(records: list[UAVRecord]) -> dict:
     """Aggregate per-UAV records into the paper's metrics (mean/std over UAVs and episodes).
 
-    * success_rate: fraction of UAVs that reached their goal without a collision in time;
+    * success_rate: fraction of UAVs that reached their goal without a collision in time,
+      and ``success_ci95_half_width`` (:func:`success_half_width`);
     * spl: eq. 9;
     * extra_distance_m: p - l over the UAVs that succeeded (a failed flight has no
       comparable path);
@@ -59,6 +79,7 @@ def summarize(records: list[UAVRecord]) -> dict:
         "uav_episodes": count,
         "episodes": len({r.episode for r in records}),
         "success_rate": len(successes) / count if count else float("nan"),
+        "success_ci95_half_width": success_half_width(records),
         "spl": spl(records),
         "extra_distance_m": _mean_std([r.path_length_m - r.straight_distance_m for r in successes]),
         "average_speed_m_s": _mean_std([r.path_length_m / r.duration_s for r in records if r.duration_s > 0]),

@@ -327,7 +327,7 @@ def evaluate_method(method: Method, settings: EvalSettings, progress: bool = Tru
 
 # --------------------------------------------------------------------------- tables
 
-_TABLE_HEAD = ("success", "collision: all / UAV / ground / timeout", "SPL", "extra distance (m)",
+_TABLE_HEAD = ("success (± 95% CI)", "collision: all / UAV / ground / timeout", "SPL", "extra distance (m)",
                "average speed (m/s)")
 
 
@@ -346,8 +346,12 @@ def _metric_cells(summary: dict | None, note: str = "not trained") -> list[str]:
     def mean_std(d: dict) -> str:
         return "-" if _num(d["mean"], 2) == "-" else f"{_num(d['mean'], 2)} ± {_num(d['std'], 2)}"
 
+    half_width = summary.get("success_ci95_half_width")  # absent from cells saved before it existed
+    success = _num(summary["success_rate"], 3)
+    if _num(half_width, 3) != "-" and success != "-":
+        success += f" ± {half_width:.3f}"
     return [
-        _num(summary["success_rate"], 3),
+        success,
         f"{_num(collision_rate(summary), 3)} / {_num(summary['collision_uav_rate'], 3)} / "
         f"{_num(summary['collision_ground_rate'], 3)} / {_num(summary['timeout_rate'], 3)}",
         _num(summary["spl"], 3),
@@ -672,15 +676,25 @@ def parse_paper_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--ns", type=_int_list, default=list(DEFAULT_FIG6_NS),
                         help="Fig. 6 swarm sizes (default " + ",".join(map(str, DEFAULT_FIG6_NS)) + ")")
     parser.add_argument("--radius", type=positive_float, default=12.0, help="Fig. 6 circle radius in m (default 12)")
+    parser.add_argument("--table-episodes", type=positive_int, default=None,
+                        help="episodes per Table II cell (default 500: random-scene success differs between "
+                             "methods by a few points, which 100 episodes cannot resolve; cells are cheap)")
     _add_common(parser)
     args = parser.parse_args(argv)
     if args.episodes is None:
         args.episodes = 100
+    if args.table_episodes is None:
+        args.table_episodes = max(500, args.episodes)
     try:
         args.policy_paths = parse_policies(args.policies)
     except ValueError as err:
         parser.error(str(err))
     return args
+
+
+#: Bumped when a cell's summary gains or changes a metric, so stored cells are recomputed
+#: (2: success_ci95_half_width).
+CELL_METRICS_VERSION = 2
 
 
 @dataclass
@@ -697,7 +711,8 @@ class PaperCell:
 def _cell_key(cell: PaperCell, method: Method | None) -> dict:
     """What a stored cell must match to be reused: the settings and the exact policy file."""
     s = cell.settings
-    return {"method": cell.method, "scenario": dataclasses.asdict(s.scenario), "num_uavs": s.num_uavs,
+    return {"metrics": CELL_METRICS_VERSION, "method": cell.method, "scenario": dataclasses.asdict(s.scenario),
+            "num_uavs": s.num_uavs,
             "episodes": s.episodes, "seed": s.seed, "dynamics": s.dynamics, "camera_noise": s.camera_noise,
             "max_episode_steps": s.max_episode_steps,
             "policy_sha256": file_digest(method.path) if method is not None and method.path else None}
@@ -735,8 +750,9 @@ def run_cell(cell: PaperCell, out: Path, progress: bool = True) -> tuple[dict | 
 
 def paper_cells(episodes: int, seed: int, dynamics: str, camera_noise: bool, max_steps: int, batch: int,
                 policy_paths: dict[str, Path], table_n: int = 8, densities: list[str] | None = None,
-                ns: list[int] | None = None, radius: float = 12.0) -> tuple[list[PaperCell], list[PaperCell]]:
-    """The cells of Table II and of Fig. 6."""
+                ns: list[int] | None = None, radius: float = 12.0,
+                table_episodes: int | None = None) -> tuple[list[PaperCell], list[PaperCell]]:
+    """The cells of Table II (``table_episodes`` each, default ``episodes``) and of Fig. 6 (``episodes``)."""
     densities = list(DENSITIES) if densities is None else densities
     ns = list(DEFAULT_FIG6_NS) if ns is None else ns
     common = dict(episodes=episodes, seed=seed, dynamics=dynamics, camera_noise=camera_noise,
@@ -748,7 +764,8 @@ def paper_cells(episodes: int, seed: int, dynamics: str, camera_noise: bool, max
         scen = ScenarioConfig(name="random", density=density_from_name(density))
         for m in (*PAPER_METHODS, "orca", "straight"):
             table.append(PaperCell(f"table2-{density}-{m}", m, specs[m],
-                                   EvalSettings(scenario=scen, num_uavs=table_n, **common)))
+                                   EvalSettings(scenario=scen, num_uavs=table_n,
+                                                **(common | {"episodes": table_episodes or episodes}))))
     fig6 = []
     circle = ScenarioConfig(name="circle", circle_radius_m=radius)
     for n in ns:
@@ -776,12 +793,14 @@ def run_paper(out: Path, table: list[PaperCell], fig6: list[PaperCell], progress
             bar.update(1)
 
     lines = ["# Reproduction of Huang et al., Table II and Fig. 6", "",
-             "Generated by `python -m sitl.swarm_test paper`. Mean ± std over UAVs and episodes; "
+             "Generated by `python -m sitl.swarm_test paper`. Success with the half-width of its ~95 % "
+             "confidence interval (clustered by episode); other columns mean ± std over UAVs and episodes; "
              "collision = 1 - success, split into UAV-UAV, ground and timeout. `orca` is privileged "
              "(true states of all UAVs); `straight` flies at its goal without avoiding anyone.", ""]
     if cells:
         s = cells[0].settings
-        lines += [f"Settings: {s.episodes} episodes per cell, evaluation seed {s.env_seed}, {s.dynamics} dynamics, "
+        lines += [f"Settings: episodes per cell: Table II {table[0].settings.episodes if table else '-'}, Fig. 6 "
+                  f"{fig6[0].settings.episodes if fig6 else '-'}; evaluation seed {s.env_seed}, {s.dynamics} dynamics, "
                   f"camera noise {'on' if s.camera_noise else 'off'}, time limit {s.max_episode_steps} steps.", ""]
     if policy_paths:
         lines += ["Policy files: " + ", ".join(f"{m} = `{p}`" + ("" if p.exists() else " (not trained)")
@@ -814,7 +833,8 @@ def paper_main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(args.threads)
     table, fig6 = paper_cells(args.episodes, args.seed, args.dynamics, args.camera_noise, args.max_steps, args.batch,
-                              args.policy_paths, args.table_n, args.densities, args.ns, args.radius)
+                              args.policy_paths, args.table_n, args.densities, args.ns, args.radius,
+                              args.table_episodes)
     for method, path in args.policy_paths.items():
         if not path.exists():
             print(f"{method}: {path} not found, reported as 'not trained'", file=sys.stderr)

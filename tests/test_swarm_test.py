@@ -73,9 +73,24 @@ def test_metrics_and_table_on_scripted_records():
     assert collision_rate(summary) == pytest.approx(0.75)
     table = markdown_table(["method"], [(["scripted"], summary), (["cnn"], None)])
     lines = table.splitlines()
-    assert len(lines) == 4 and lines[0].startswith("| method | success | collision")
+    assert len(lines) == 4 and lines[0].startswith("| method | success (± 95% CI) | collision")
     assert "| scripted | 0.250 | 0.750 / 0.250 / 0.250 / 0.250 | 0.208 | 2.00 ± 0.00 | 1.19 ± 0.65 |" == lines[2]
     assert lines[3].startswith("| cnn | not trained |")
+
+
+def test_success_interval_is_clustered_by_episode():
+    """1 of 4 arrive in one episode, 3 of 4 in the other: SE = sqrt(2 * ((1-2)^2 + (3-2)^2)) / 8 = 0.25."""
+    records = [_record("arrived" if u < arrivals else "collision_uav", 10.0, 10.0, 5.0, episode=e, uav=u)
+               for e, arrivals in ((0, 1), (1, 3)) for u in range(4)]
+    summary = summarize(records)
+    assert summary["success_rate"] == 0.5
+    assert summary["success_ci95_half_width"] == pytest.approx(1.96 * 0.25)
+    assert "| two | 0.500 ± 0.490 |" in markdown_table(["method"], [(["two"], summary)])
+    # Episodes that all end alike leave no spread between episodes; one episode has no interval.
+    same = [_record("arrived" if u < 2 else "timeout", 10.0, 10.0, 5.0, episode=e, uav=u)
+            for e in range(3) for u in range(4)]
+    assert summarize(same)["success_ci95_half_width"] == pytest.approx(0.0)
+    assert math.isnan(summarize(same[:4])["success_ci95_half_width"])
 
 
 def test_metrics_of_a_flown_trajectory_match_its_recorded_path():
@@ -218,8 +233,10 @@ def test_impossible_scenario_is_reported(capsys):
 def test_paper_run_is_resumable_and_reports_untrained_methods(tmp_path, contract_policy, capsys):
     policies = {"sac_ae": contract_policy, "cnn": tmp_path / "no_cnn.pt", "vae": tmp_path / "no_vae.pt"}
     table, fig6 = paper_cells(episodes=1, seed=0, dynamics="kinematic", camera_noise=False, max_steps=40, batch=1,
-                              policy_paths=policies, table_n=3, densities=["medium"], ns=[3, 4], radius=6.0)
+                              policy_paths=policies, table_n=3, densities=["medium"], ns=[3, 4], radius=6.0,
+                              table_episodes=2)
     assert [c.method for c in table] == ["sac_ae", "cnn", "vae", "orca", "straight"]
+    assert {c.settings.episodes for c in table} == {2} and {c.settings.episodes for c in fig6} == {1}
     assert [(c.settings.num_uavs, c.method) for c in fig6][:4] == [(3, "sac_ae"), (3, "vae"), (3, "orca"),
                                                                     (3, "straight")]
     out = tmp_path / "paper"
@@ -229,6 +246,7 @@ def test_paper_run_is_resumable_and_reports_untrained_methods(tmp_path, contract
     assert sum(s == "computed" for s in first["status"].values()) == 3 + 6
     cell = json.loads((out / "cells" / "fig6-n4-orca.json").read_text())
     assert cell["summary"]["uav_episodes"] == 4 and cell["key"]["num_uavs"] == 4
+    assert json.loads((out / "cells" / "table2-medium-orca.json").read_text())["summary"]["uav_episodes"] == 6
     assert (out / "fig6_scaling.png").stat().st_size > 10_000
     assert (out / "trajectories" / "fig6-n3-sac_ae.png").is_file()
     md = (out / "paper.md").read_text()
@@ -236,7 +254,8 @@ def test_paper_run_is_resumable_and_reports_untrained_methods(tmp_path, contract
     mtime = (out / "cells" / "fig6-n4-orca.json").stat().st_mtime_ns
 
     # The command line with the same settings reuses every stored cell.
-    code = main(["paper", "--out", str(out), "--episodes", "1", "--max-steps", "40", "--batch", "1",
+    code = main(["paper", "--out", str(out), "--episodes", "1", "--table-episodes", "2", "--max-steps", "40",
+                 "--batch", "1",
                  "--policies", ",".join(f"{m}={p}" for m, p in policies.items()), "--table-n", "3",
                  "--densities", "medium", "--ns", "3,4", "--radius", "6", "--threads", "1", "--no-progress"])
     assert code == 0
@@ -250,8 +269,10 @@ def test_paper_run_is_resumable_and_reports_untrained_methods(tmp_path, contract
 
 
 def test_episode_defaults_differ_for_mavlink_and_paper():
-    """In-process and paper runs fly 100 episodes by default; a real-time MAVLink run 10."""
+    """In-process runs and Fig. 6 fly 100 episodes by default, Table II 500; a real-time MAVLink run 10."""
     assert swarm_test.parse_args([]).episodes == 100
     assert swarm_test.parse_args(["--mavlink"]).episodes == 10
     assert swarm_test.parse_paper_args([]).episodes == 100
+    assert swarm_test.parse_paper_args([]).table_episodes == 500  # Table II's random scenes need the precision
+    assert swarm_test.parse_paper_args(["--episodes", "800"]).table_episodes == 800
     assert swarm_test.parse_args(["--mavlink", "--episodes", "3"]).episodes == 3
