@@ -692,11 +692,6 @@ def parse_paper_args(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
-#: Bumped when a cell's summary gains or changes a metric, so stored cells are recomputed
-#: (2: success_ci95_half_width).
-CELL_METRICS_VERSION = 2
-
-
 @dataclass
 class PaperCell:
     """One evaluation of the reproduction: a method in one scene."""
@@ -711,8 +706,7 @@ class PaperCell:
 def _cell_key(cell: PaperCell, method: Method | None) -> dict:
     """What a stored cell must match to be reused: the settings and the exact policy file."""
     s = cell.settings
-    return {"metrics": CELL_METRICS_VERSION, "method": cell.method, "scenario": dataclasses.asdict(s.scenario),
-            "num_uavs": s.num_uavs,
+    return {"method": cell.method, "scenario": dataclasses.asdict(s.scenario), "num_uavs": s.num_uavs,
             "episodes": s.episodes, "seed": s.seed, "dynamics": s.dynamics, "camera_noise": s.camera_noise,
             "max_episode_steps": s.max_episode_steps,
             "policy_sha256": file_digest(method.path) if method is not None and method.path else None}
