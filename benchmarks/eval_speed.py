@@ -5,7 +5,7 @@ the command does (parallel worlds, one policy batch over every acting UAV, paths
 recorded) with three controllers: a policy, the straight-to-goal reference and ORCA.
 
 The policy is ``models/policy.pt`` when it exists (or ``--policy PATH``); otherwise a
-freshly initialised actor of the fast training preset's size (32x32 depth, 256 hidden
+freshly initialised actor of the fast training preset's size (32x32 depth, 1024 hidden
 units) is exported to a temporary file. Its inference costs the same as a trained
 policy's, but it never arrives, so every UAV flies the full 40 s time limit: an upper
 bound on the time a trained policy needs (crossing the circle takes 12-20 s, not 40 s).
@@ -37,7 +37,7 @@ def untrained_policy(path: Path) -> Path:
     from sitl.rl.export import export_policy
 
     torch.manual_seed(0)
-    agent = SacAeAgent(AgentConfig(hidden_dim=256), CameraSpec(width=32, height=32), DEFAULT_ACTION_SPEC)
+    agent = SacAeAgent(AgentConfig(), CameraSpec(width=32, height=32), DEFAULT_ACTION_SPEC)
     export_policy(agent, path, 0.1, {"method": "untrained", "note": "benchmark stand-in for a trained policy"})
     return path
 

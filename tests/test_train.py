@@ -90,7 +90,7 @@ def test_presets_and_flags():
     cfg, agent_cfg, resume = parse_args([])
     assert cfg.preset == "fast" and cfg.method == "sac_ae" and cfg.scenario == "random" and cfg.num_uavs == 8
     assert agent_cfg.critic_tau == 0.01 and agent_cfg.encoder_tau == 0.05
-    assert (agent_cfg.hidden_dim, agent_cfg.init_temperature, agent_cfg.n_step) == (256, 0.01, 5)
+    assert (agent_cfg.hidden_dim, agent_cfg.init_temperature, agent_cfg.n_step) == (1024, 0.01, 5)
     paper, paper_agent, _ = parse_args(["--preset", "paper"])
     assert (paper_agent.hidden_dim, paper_agent.init_temperature, paper_agent.n_step) == (1024, 0.1, 1)
     assert (paper.replay_capacity, paper.max_episodes, paper.updates_per_episode, paper.batch_size) == (20000, 200, 400, 128)
