@@ -34,6 +34,7 @@ class Companionish(GroundStation):
                                                dialect="common")
         self.mav = self.conn.mav
         self.latest: dict = {}
+        self.last_setpoint_sent = 0.0
 
     def pump(self, seconds: float, setpoint: tuple | list | None = None, rate_hz: float = 10.0) -> None:
         """Read messages for ``seconds``, sending ``(frame, vx, vz)`` setpoints (or a list of them, in turn)."""
@@ -47,6 +48,7 @@ class Companionish(GroundStation):
                 sent += 1
                 self.mav.set_position_target_local_ned_send(0, 1, 1, frame, VELOCITY_YAW_RATE, 0, 0, 0, vx, 0, vz,
                                                             0, 0, 0, 0, 0)
+                self.last_setpoint_sent = time.monotonic()
                 next_send += 1.0 / rate_hz
             msg = self.conn.recv_match(blocking=True, timeout=0.02)
             while msg is not None:
@@ -108,7 +110,8 @@ def test_px4_vehicle_offboard_rules_failsafe_odometry_and_depth(tmp_path):
             assert odom.z < -0.4 and odom.vx > 0.5 and time.monotonic() - t_odom < 0.1
 
             # Offboard loss: no setpoint for 1 s -> AUTO.LOITER (Hold).
-            last_setpoint = time.monotonic()
+            # Timed from the last send, which can be up to one 10 Hz period before pump() returns.
+            last_setpoint = ap.last_setpoint_sent
             while ap.heartbeat().custom_mode == px4_custom_mode(6):
                 ap.pump(0.05)
                 assert time.monotonic() - last_setpoint < 2.0, "offboard-loss failsafe did not trigger"
