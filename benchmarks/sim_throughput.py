@@ -22,7 +22,6 @@ import time
 
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 
-import numpy as np  # noqa: E402
 
 from sitl.baselines import straight_to_goal  # noqa: E402
 from sitl.config import SimConfig  # noqa: E402

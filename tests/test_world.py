@@ -22,7 +22,7 @@ import pytest
 
 from companion.depth_wire import WireFrame, decode_frame
 from companion.recording import read_recording
-from tests.companion_helpers import REPO, Processes, free_udp_blocks, make_policy, read_jsonl
+from tests.companion_helpers import Processes, free_udp_blocks, make_policy, read_jsonl
 
 os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
