@@ -232,6 +232,37 @@ class SwarmEnv:
                 path_ned=np.asarray(self._paths[r]).round(3).tolist() if self.config.record_paths else None,
             ))
 
+    def fly_episodes(self, obs: Observation, act, episodes: int, observer=None, on_done=None) -> list[UAVRecord]:
+        """Fly ``episodes`` episodes from the just-reset ``obs``: ``act(obs) -> actions [M, 3]``.
+
+        The worlds fly in parallel; a world that finishes starts the next episode while
+        episodes remain, so episode ``k`` is always the ``k``-th scenario drawn whatever the
+        number of worlds, and slow episodes do not hold back a whole batch. ``observer``
+        (``before_step(env)``, ``after_step(env, info)``) is called around every step;
+        ``on_done(count)`` whenever ``count`` more episodes have ended. Returns every record.
+        """
+        started = self.num_worlds
+        was_done = np.zeros(self.num_worlds, dtype=bool)
+        while True:
+            done = self.world_done
+            if on_done is not None and (done & ~was_done).any():
+                on_done(int(np.count_nonzero(done & ~was_done)))
+            was_done = done.copy()
+            if done.any() and started < episodes:
+                restart = np.zeros(self.num_worlds, dtype=bool)
+                restart[np.flatnonzero(done)[: episodes - started]] = True
+                started += int(restart.sum())
+                obs = self.reset_worlds(restart)
+                was_done &= ~restart
+                done = self.world_done
+            if done.all():
+                return self.finish()
+            if observer is not None:
+                observer.before_step(self)
+            obs, _, _, _, info = self.step(act(obs))
+            if observer is not None:
+                observer.after_step(self, info)
+
     def finish(self) -> list[UAVRecord]:
         """Record every world whose episode is over and return all records so far."""
         for b in np.flatnonzero(self.world_done):

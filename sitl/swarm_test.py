@@ -276,13 +276,12 @@ def evaluate_method(method: Method, settings: EvalSettings, progress: bool = Tru
                     leave: bool = True, observer: StepObserver | None = None) -> EvalResult:
     """Fly ``settings.episodes`` episodes with ``method`` and summarise them.
 
-    Up to ``batch_worlds`` episodes fly at once as parallel worlds; a world that finishes
-    starts the next episode while episodes remain, so slow episodes do not hold back a
-    whole batch. Scenarios come from the env's generator seeded with ``EVAL_SEED_OFFSET +
-    seed``: with perfect depth every controller meets the same sequence of episodes
-    (episode ``k`` is the ``k``-th drawn), and with ``episodes <= batch_worlds`` they are
-    exactly the trainer's final-evaluation episodes for the same scenario. ``observer`` is
-    called around every ``env.step`` (worlds that restart do so between two steps).
+    Up to ``batch_worlds`` episodes fly at once as parallel worlds (``SwarmEnv.fly_episodes``:
+    a finished world starts the next episode). Scenarios come from the env's generator
+    seeded with ``EVAL_SEED_OFFSET + seed``: with perfect depth every controller meets the
+    same sequence of episodes (episode ``k`` is the ``k``-th drawn), the same as the
+    trainer's final evaluation of that scenario. ``observer`` is called around every
+    ``env.step`` (worlds that restart do so between two steps).
     """
     from tqdm import tqdm
 
@@ -295,33 +294,11 @@ def evaluate_method(method: Method, settings: EvalSettings, progress: bool = Tru
     except ValueError as err:  # e.g. a density too high to place N UAVs 1 m apart
         raise EvaluationError(f"cannot build the scenario: {err}") from None
     actor = method.make_actor(env)
-    episodes_started = num_worlds
-    was_done = np.zeros(num_worlds, dtype=bool)
     bar = tqdm(total=settings.episodes, unit="episode", desc=desc or method.label, disable=not progress,
                file=sys.stderr, leave=leave, dynamic_ncols=True, mininterval=0.5)
     with bar:
-        while True:
-            done = env.world_done
-            bar.update(int(np.count_nonzero(done & ~was_done)))
-            was_done = done.copy()
-            if done.any() and episodes_started < settings.episodes:
-                restart = np.zeros(num_worlds, dtype=bool)
-                for b in np.flatnonzero(done)[: settings.episodes - episodes_started]:
-                    restart[b] = True
-                episodes_started += int(restart.sum())
-                obs = env.reset_worlds(restart)
-                was_done &= ~restart
-                done = env.world_done
-            if done.all():
-                break
-            if observer is None:
-                obs, *_ = env.step(actor(env, obs))
-                continue
-            observer.before_step(env)
-            obs, _, _, _, info = env.step(actor(env, obs))
-            observer.after_step(env, info)
+        records = env.fly_episodes(obs, lambda o: actor(env, o), settings.episodes, observer, bar.update)
     wall = time.perf_counter() - started
-    records = env.finish()
     return EvalResult(method, settings, config, records, summarize(records), wall)
 
 

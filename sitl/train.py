@@ -189,13 +189,17 @@ def make_sim_config(cfg: TrainConfig, num_worlds: int, record_paths: bool = Fals
                      reward=RewardConfig(arrival_radius_m=cfg.arrival_radius_m))
 
 
-def evaluate(act, sim_config: SimConfig, seed: int) -> dict:
-    """Fly ``act(depth, state) -> actions`` deterministically in every world of ``sim_config`` once."""
+#: Evaluation episodes flown at once as parallel worlds (as ``swarm_test --batch``).
+EVAL_BATCH_WORLDS = 100
+
+
+def evaluate(act, sim_config: SimConfig, seed: int, episodes: int) -> dict:
+    """Fly ``episodes`` episodes of ``act(depth, state) -> actions``, ``sim_config.num_worlds`` at a time.
+
+    The episodes are those of ``swarm_test`` with the same seed (``SwarmEnv.fly_episodes``).
+    """
     env = SwarmEnv(sim_config, seed=seed)
-    obs = env.reset()
-    while not env.world_done.all():
-        obs, *_ = env.step(act(obs.depth, obs.state))
-    return summarize(env.finish())
+    return summarize(env.fly_episodes(env.reset(), lambda obs: act(obs.depth, obs.state), episodes))
 
 
 def evaluation_scenarios(cfg: TrainConfig) -> tuple[str, ...]:
@@ -415,8 +419,9 @@ class Trainer:
     def evaluate(self, episodes: int, seed_offset: int = EVAL_SEED_OFFSET) -> dict[str, dict]:
         """Deterministic evaluation on unseen seeds (test seeds by default), one summary per evaluation scenario."""
         act = lambda d, s: self.agent.act(d, s, explore=False)  # noqa: E731
-        return {name: evaluate(act, make_sim_config(self.cfg, episodes, scenario_name=name),
-                               seed=seed_offset + self.cfg.seed)
+        worlds = min(episodes, EVAL_BATCH_WORLDS)
+        return {name: evaluate(act, make_sim_config(self.cfg, worlds, scenario_name=name),
+                               seed=seed_offset + self.cfg.seed, episodes=episodes)
                 for name in evaluation_scenarios(self.cfg)}
 
     def validate(self, write=print) -> None:
