@@ -273,6 +273,17 @@ def snapshot_counters(snapshot: Path) -> dict:
     return add_counters(counters, ckpt.get("initial_stage", {}))
 
 
+def snapshot_score(row: dict) -> float:
+    """A validated snapshot's score: the ``sitl.rescore`` one where present, else the training-time one."""
+    return row["rescored"]["score"] if "rescored" in row else row["score"]
+
+
+def select_snapshot(rows: list[dict]) -> dict:
+    """The best row of ``validation.json``; rescored rows (``sitl.rescore``) compete only among themselves."""
+    rescored = [row for row in rows if "rescored" in row]
+    return max(rescored or rows, key=lambda row: (snapshot_score(row), row["updates"]))
+
+
 def _atomic_save(obj, path: Path) -> None:
     tmp = path.with_suffix(".tmp")
     torch.save(obj, tmp)
@@ -466,9 +477,10 @@ class Trainer:
         index_path = self.run_dir / "snapshots" / "validation.json"
         if not index_path.exists():
             return None
-        best = max(json.loads(index_path.read_text()), key=lambda row: (row["score"], row["updates"]))
+        best = select_snapshot(json.loads(index_path.read_text()))
         self.agent.load_state_dict(torch.load(self.run_dir / "snapshots" / f"agent_{best['updates']}.pt"))
-        self.log(f"selected the snapshot at {best['updates']} updates (validation success {best['score']:.3f})")
+        how = "rescored" if "rescored" in best else "validation success"
+        self.log(f"selected the snapshot at {best['updates']} updates ({how} {snapshot_score(best):.3f})")
         return best
 
     # -------------------------------------------------------------- main loop
