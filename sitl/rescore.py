@@ -95,7 +95,7 @@ def _int_list(text: str) -> list[int]:
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
     if any(v < 2 for v in values):
-        raise argparse.ArgumentTypeError(f"a circle needs at least 2 UAVs, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected integers of at least 2, got {text!r}")
     return values
 
 
@@ -117,6 +117,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--circle-uavs", type=_int_list, default=[8, 12, 14],
                         help="circle sizes to fly, comma-separated; empty for none (default: 8,12,14)")
     parser.add_argument("--random-uavs", type=int, default=8, help="UAVs in the random scenes (default: 8)")
+    parser.add_argument("--updates", type=_int_list, default=None,
+                        help="rescore only the snapshots at these update counts, comma-separated (default: all)")
     parser.add_argument("--threads", type=int, default=2, help="torch threads (default: 2)")
     args = parser.parse_args(argv)
     if args.episodes < 1:
@@ -142,6 +144,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{run_dir}: {len(rows)} snapshots, {args.episodes} validation episodes per scene", flush=True)
         print("updates  " + "  ".join(f"{scene[0]:>12}" for scene in scenes) + "   score  (training-time score)")
         for row in sorted(rows, key=lambda r: r["updates"]):
+            if args.updates is not None and row["updates"] not in args.updates:
+                continue
             snapshot = run_dir / "snapshots" / f"agent_{row['updates']}.pt"
             if not snapshot.is_file():
                 print(f"{row['updates']:>7}  snapshot file missing, skipped", flush=True)

@@ -74,7 +74,7 @@ def test_rescore_writes_every_snapshot_and_resume_exports_its_choice(tmp_path):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--circle-uavs", "1"], "a circle needs at least 2 UAVs"),
+    (["--circle-uavs", "1"], "expected integers of at least 2"),
     (["--densities", "huge"], "densities are small, medium or large"),
     (["--episodes", "0"], "--episodes must be at least 1"),
 ])
