@@ -12,8 +12,8 @@ from the companion's own step log, after ``--warmup`` seconds:
   ``inference_ms_p99_isolated`` from 2000 back-to-back calls in this process;
 * ``rss_mb`` / ``peak_rss_mb``: the companion's resident memory at the end.
 
-Without ``--policy`` it builds a policy of the paper's SAC+AE actor size (4 conv layers of
-32 filters, a 50-d feature, two 256-unit layers), since no trained policy ships yet.
+It flies the bundled ``models/policy.pt`` (the paper's actor size: 4 conv layers of 32
+filters, a 50-d feature, two 1024-unit layers) unless ``--policy`` names another file.
 The last line of output is one JSON object. Targets (10 Hz): inference p99 <= 2 ms,
 frame-to-setpoint p99 <= 15 ms, jitter p99 <= 2 ms.
 
@@ -39,39 +39,6 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 TARGETS = {"inference_ms_p99": 2.0, "frame_to_setpoint_ms_p99": 15.0, "period_jitter_ms_p99": 2.0}
-
-
-def build_paper_sized_policy(path: Path) -> None:
-    """A contract-following policy with the SAC+AE actor's size (random weights)."""
-    import torch
-    from torch import nn
-
-    from companion.policy import build_metadata, save_policy
-    from companion.spec import ActionSpec, CameraSpec
-
-    class Actor(nn.Module):
-        def __init__(self, low, high, max_range_m: float) -> None:
-            super().__init__()
-            self.encoder = nn.Sequential(
-                nn.Conv2d(3, 32, 3, stride=2), nn.ReLU(), nn.Conv2d(32, 32, 3), nn.ReLU(),
-                nn.Conv2d(32, 32, 3), nn.ReLU(), nn.Conv2d(32, 32, 3), nn.ReLU(), nn.Flatten(),
-                nn.Linear(32 * 9 * 9, 50), nn.LayerNorm(50), nn.Tanh())
-            self.head = nn.Sequential(nn.Linear(56, 256), nn.ReLU(), nn.Linear(256, 256), nn.ReLU(), nn.Linear(256, 3))
-            self.register_buffer("low", torch.tensor(low))
-            self.register_buffer("high", torch.tensor(high))
-            self.max_range_m = max_range_m
-
-        def forward(self, depth: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
-            features = self.encoder(depth / self.max_range_m)
-            squashed = torch.tanh(self.head(torch.cat([features, state / 10.0], dim=1)))
-            return self.low + (squashed + 1.0) * 0.5 * (self.high - self.low)
-
-    camera, action = CameraSpec(), ActionSpec()
-    torch.manual_seed(0)
-    module = Actor(list(action.low), list(action.high), camera.max_range_m)
-    provenance = {"method": "benchmark: SAC+AE actor size, random weights", "scenario": "none", "steps": 0,
-                  "wall_time_s": 0.0, "git_commit": "n/a", "evaluation": {}}
-    save_policy(module, build_metadata(camera, action, 0.1, provenance), path)
 
 
 def isolated_inference_ms(policy_path: Path, calls: int = 2000) -> dict:
@@ -175,7 +142,8 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=30.0, help="measured flight time (default 30)")
     parser.add_argument("--warmup", type=float, default=5.0, help="flight time ignored at the start (default 5)")
     parser.add_argument("--camera-hz", type=float, default=30.0, help="simulated camera rate (default 30)")
-    parser.add_argument("--policy", type=Path, help="policy file (default: a SAC+AE-sized random policy)")
+    parser.add_argument("--policy", type=Path, default=REPO / "models" / "policy.pt",
+                        help="policy file (default: the bundled models/policy.pt)")
     parser.add_argument("--realtime", action="store_true",
                         help="run the companion (as CPUSchedulingPolicy=fifo would) and the simulated vehicle, which "
                              "stands in for the camera hardware, under SCHED_FIFO priority 20 (chrt)")
@@ -185,14 +153,14 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="companion-latency-") as tmp:
         workdir = args.keep or Path(tmp)
         workdir.mkdir(parents=True, exist_ok=True)
-        policy_path = args.policy or workdir / "policy.pt"
-        if args.policy is None:
-            build_paper_sized_policy(policy_path)
+        policy_path = args.policy
+        if not policy_path.is_file():
+            raise SystemExit(f"error: no policy file {policy_path}")
         isolated = isolated_inference_ms(policy_path)
         records = fly(policy_path, workdir, args.seconds, args.warmup, args.camera_hz, args.realtime)
     from companion.policy import load_policy
 
-    period_ms = load_policy(policy_path, check_forward=False).control_period_s * 1000.0 if args.policy else 100.0
+    period_ms = load_policy(policy_path, check_forward=False).control_period_s * 1000.0
     result = summarize(records, args.warmup, period_ms)
     result["inference_ms_p99_isolated"] = isolated["p99"]
     result.update({"control_hz": round(1000.0 / period_ms, 3), "camera_hz": args.camera_hz, "seconds": args.seconds,
