@@ -27,8 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from companion.spec import DEFAULT_ACTION_SPEC
-from sitl.train import (EVAL_BATCH_WORLDS, VALIDATION_SEED_OFFSET, AgentConfig, TrainConfig, evaluate,
+from sitl.train import (VALIDATION_SEED_OFFSET, AgentConfig, TrainConfig, evaluate_scenario, make_agent,
                         make_sim_config)
 
 
@@ -46,15 +45,7 @@ def load_run(run_dir: Path) -> tuple[TrainConfig, AgentConfig, list[dict]]:
 
 def snapshot_actor(cfg: TrainConfig, agent_cfg: AgentConfig, snapshot: Path):
     """``act(depth, state) -> actions`` of a snapshot's deterministic actor."""
-    from sitl.rl.agent import SacAeAgent
-
-    camera = make_sim_config(cfg, 1).camera
-    vae_encoder = None
-    if agent_cfg.method == "vae":
-        from sitl.rl.vae import VAEEncoder
-
-        vae_encoder = VAEEncoder(camera.frames, camera.height, camera.width, agent_cfg.latent_dim)
-    agent = SacAeAgent(agent_cfg, camera, DEFAULT_ACTION_SPEC, "cpu", vae_encoder)
+    agent = make_agent(agent_cfg, make_sim_config(cfg, 1))
     agent.load_state_dict(torch.load(snapshot, weights_only=True))
     agent.eval()
     return lambda depth, state: agent.act(depth, state, explore=False)
@@ -75,8 +66,7 @@ def rescore_snapshot(cfg: TrainConfig, act, scenes: list[Scene], episodes: int) 
     results: dict[str, dict] = {}
     for name, scenario, uavs, density in scenes:
         scene_cfg = replace(cfg, num_uavs=uavs, density=density)
-        sim_config = make_sim_config(scene_cfg, min(episodes, EVAL_BATCH_WORLDS), scenario_name=scenario)
-        summary = evaluate(act, sim_config, seed=VALIDATION_SEED_OFFSET + cfg.seed, episodes=episodes)
+        summary = evaluate_scenario(act, scene_cfg, scenario, episodes, VALIDATION_SEED_OFFSET + cfg.seed)
         results[name] = {"success_rate": summary["success_rate"], "spl": summary["spl"],
                          "success_ci95_half_width": summary["success_ci95_half_width"]}
     return {"episodes": episodes, "scenes": results, "score": selection_score(results)}

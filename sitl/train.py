@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from companion.spec import CameraSpec
+from companion.spec import DEFAULT_ACTION_SPEC, CameraSpec
 from sitl.config import TRAINING_SCENARIOS, RewardConfig, ScenarioConfig, SimConfig, density_from_name
 from sitl.env import SwarmEnv
 from sitl.metrics import summarize
@@ -290,6 +290,27 @@ def _atomic_save(obj, path: Path) -> None:
     os.replace(tmp, path)  # a run killed mid-save keeps its previous checkpoint
 
 
+def make_agent(agent_cfg: AgentConfig, sim_config: SimConfig, device: str = "cpu",
+               vae_encoder: torch.nn.Module | None = None) -> SacAeAgent:
+    """The agent of ``agent_cfg`` for ``sim_config``'s camera.
+
+    Method ``vae`` without a trained ``vae_encoder`` gets a blank one, whose weights a
+    checkpoint or snapshot then loads.
+    """
+    cam = sim_config.camera
+    if agent_cfg.method == "vae" and vae_encoder is None:
+        from sitl.rl.vae import VAEEncoder
+
+        vae_encoder = VAEEncoder(cam.frames, cam.height, cam.width, agent_cfg.latent_dim)
+    return SacAeAgent(agent_cfg, cam, DEFAULT_ACTION_SPEC, device, vae_encoder)
+
+
+def evaluate_scenario(act, cfg: TrainConfig, scenario_name: str, episodes: int, seed: int) -> dict:
+    """``evaluate`` in ``cfg``'s worlds of one scenario, up to ``EVAL_BATCH_WORLDS`` at a time."""
+    sim_config = make_sim_config(cfg, min(episodes, EVAL_BATCH_WORLDS), scenario_name=scenario_name)
+    return evaluate(act, sim_config, seed=seed, episodes=episodes)
+
+
 def build_vae_encoder(cfg: TrainConfig, sim_config: SimConfig, log) -> torch.nn.Module:
     """RL+VAE's protocol: collect depth images with a trained policy, train a VAE, freeze it."""
     from companion.policy import load_policy
@@ -331,15 +352,9 @@ class Trainer:
         torch.manual_seed(cfg.seed)
         self.sim_config = make_sim_config(cfg, cfg.num_worlds)
         self.env = SwarmEnv(self.sim_config, seed=cfg.seed)
-        vae_encoder = None
-        if agent_cfg.method == "vae" and not resume:
-            vae_encoder = build_vae_encoder(cfg, self.sim_config, self.log)
-        elif agent_cfg.method == "vae":
-            from sitl.rl.vae import VAEEncoder
-
-            cam = self.sim_config.camera
-            vae_encoder = VAEEncoder(cam.frames, cam.height, cam.width, agent_cfg.latent_dim)
-        self.agent = SacAeAgent(agent_cfg, self.sim_config.camera, self.env.action_spec, cfg.device, vae_encoder)
+        trained_vae = build_vae_encoder(cfg, self.sim_config, self.log) \
+            if agent_cfg.method == "vae" and not resume else None
+        self.agent = make_agent(agent_cfg, self.sim_config, cfg.device, trained_vae)
         cam = self.sim_config.camera
         self.buffer = FrameReplayBuffer(cfg.replay_capacity, self.env.num_agents, cam.frames, cam.height, cam.width,
                                         6, 3, seed=cfg.seed)
@@ -430,9 +445,7 @@ class Trainer:
     def evaluate(self, episodes: int, seed_offset: int = EVAL_SEED_OFFSET) -> dict[str, dict]:
         """Deterministic evaluation on unseen seeds (test seeds by default), one summary per evaluation scenario."""
         act = lambda d, s: self.agent.act(d, s, explore=False)  # noqa: E731
-        worlds = min(episodes, EVAL_BATCH_WORLDS)
-        return {name: evaluate(act, make_sim_config(self.cfg, worlds, scenario_name=name),
-                               seed=seed_offset + self.cfg.seed, episodes=episodes)
+        return {name: evaluate_scenario(act, self.cfg, name, episodes, seed_offset + self.cfg.seed)
                 for name in evaluation_scenarios(self.cfg)}
 
     def validate(self, write=print) -> None:
