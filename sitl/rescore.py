@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from sitl.train import (VALIDATION_SEED_OFFSET, AgentConfig, TrainConfig, evaluate_scenario, make_agent,
-                        make_sim_config)
+                        make_sim_config, select_snapshot)
 
 
 def load_run(run_dir: Path) -> tuple[TrainConfig, AgentConfig, list[dict]]:
@@ -46,7 +46,10 @@ def load_run(run_dir: Path) -> tuple[TrainConfig, AgentConfig, list[dict]]:
 def snapshot_actor(cfg: TrainConfig, agent_cfg: AgentConfig, snapshot: Path):
     """``act(depth, state) -> actions`` of a snapshot's deterministic actor."""
     agent = make_agent(agent_cfg, make_sim_config(cfg, 1))
-    agent.load_state_dict(torch.load(snapshot, weights_only=True))
+    try:
+        agent.load_state_dict(torch.load(snapshot, weights_only=True))
+    except Exception as err:  # noqa: BLE001 - a corrupt file or other networks: the same clear refusal
+        raise ValueError(f"{snapshot}: not a snapshot of this run's networks ({str(err)[:200]})") from None
     agent.eval()
     return lambda depth, state: agent.act(depth, state, explore=False)
 
@@ -141,14 +144,18 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{row['updates']:>7}  snapshot file missing, skipped", flush=True)
                 continue
             started = time.perf_counter()
-            row["rescored"] = rescore_snapshot(cfg, snapshot_actor(cfg, agent_cfg, snapshot), scenes, args.episodes)
+            try:
+                act = snapshot_actor(cfg, agent_cfg, snapshot)
+            except ValueError as err:
+                print(f"{row['updates']:>7}  skipped: {err}", flush=True)
+                continue
+            row["rescored"] = rescore_snapshot(cfg, act, scenes, args.episodes)
             cells = "  ".join(f"{r['success_rate']:.3f}/{r['spl']:.2f}".rjust(12) for r in row["rescored"]["scenes"].values())
             print(f"{row['updates']:>7}  {cells}   {row['rescored']['score']:.3f}  ({row['score']:.3f}), "
                   f"{time.perf_counter() - started:.0f} s", flush=True)
             index_path.write_text(json.dumps(rows, indent=1))  # after each snapshot: an interruption loses little
-        best = max((r for r in rows if "rescored" in r), key=lambda r: (r["rescored"]["score"], r["updates"]),
-                   default=None)
-        if best is not None:
+        if any("rescored" in row for row in rows):
+            best = select_snapshot(rows)  # the choice `sitl.train --resume` will make
             print(f"best: {best['updates']} updates (score {best['rescored']['score']:.3f}); "
                   f"`python -m sitl.train --resume {run_dir}` exports it with a test-seed evaluation")
     return 0

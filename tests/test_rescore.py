@@ -72,6 +72,14 @@ def test_rescore_writes_every_snapshot_and_resume_exports_its_choice(tmp_path):
     assert f"selected the snapshot at {loser['updates']} updates (rescored 1.000)" in done.stderr
     assert json.loads((run_dir / "final_eval.json").read_text())["selected_snapshot"]["updates"] == loser["updates"]
 
+    # A corrupt snapshot is skipped with the reason; the others keep their rescoring.
+    (run_dir / "snapshots" / "agent_8.pt").write_bytes(b"not a snapshot")
+    done = _run(tmp_path, "-m", "sitl.rescore", str(run_dir), "--episodes", "1", "--random-uavs", "3",
+                "--circle-uavs", "", "--updates", "8", "--threads", "1")
+    assert done.returncode == 0, done.stderr
+    assert "skipped" in done.stdout and "not a snapshot of this run's networks" in done.stdout
+    assert json.loads((run_dir / "snapshots" / "validation.json").read_text()) == rows
+
 
 @pytest.mark.parametrize("args, message", [
     (["--circle-uavs", "1"], "expected integers of at least 2"),
