@@ -37,6 +37,7 @@ import numpy as np
 from companion.spec import CameraSpec
 
 _EPS_FWD = 1e-3  # an object reaching closer than this to the image plane is not culled
+LANDED_CAMERA_HEIGHT_M = 0.15  # a landed quadrotor's camera is above its landing gear, not at z = 0
 
 
 @dataclass(frozen=True)

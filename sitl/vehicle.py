@@ -43,39 +43,16 @@ from sitl.cli_args import (
     positive_int,
     udp_port,
 )
-from sitl.camera import DepthCamera
+from sitl.camera import LANDED_CAMERA_HEIGHT_M, DepthCamera
 from sitl.collision import uav_uav_collisions
 from sitl.depth_transport import DepthFrameSender
+from sitl.event_log import EventLog
 from sitl.dynamics import DYNAMICS_NAMES, make_dynamics
 from sitl.mavlink_autopilot import Body, MavlinkUdpLink, SimAutopilot
 
 PHYSICS_DT_S = 0.02
 COLLISION_RADIUS_M = 0.3
-LANDED_CAMERA_HEIGHT_M = 0.15  # a landed quadrotor's camera is above its landing gear, not at z = 0
 HARD_LANDING_M_S = 2.0
-
-
-class EventLog:
-    """JSON lines with the UNIX time of each event."""
-
-    def __init__(self, stream) -> None:
-        self.stream = stream
-
-    def __call__(self, event: str, **fields) -> None:
-        record = {"t": round(time.time(), 4), "event": event, **fields}
-        try:
-            self.stream.write(json.dumps(record, default=_json_default) + "\n")
-            self.stream.flush()
-        except (OSError, ValueError):
-            pass
-
-
-def _json_default(value):
-    if isinstance(value, np.ndarray):
-        return value.round(3).tolist()
-    if isinstance(value, (np.floating, np.integer)):
-        return value.item()
-    return str(value)
 
 
 class SimWorld:
@@ -310,8 +287,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    stream = sys.stdout if args.log == "-" else open(Path(args.log), "a", buffering=1)  # noqa: SIM115
-    log = EventLog(stream)
+    log = EventLog.open(args.log)
     world = SimWorld(args, log)
     world.render_and_send()  # compile/load the camera kernel before announcing readiness
     log("ready", n=args.n, autopilot=args.autopilot, dynamics=args.dynamics,
@@ -328,8 +304,7 @@ def main(argv: list[str] | None = None) -> int:
         world.close()
         if trace is not None:
             trace.close()
-        if stream is not sys.stdout:
-            stream.close()
+        log.close()
     return 0
 
 

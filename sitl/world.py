@@ -43,7 +43,6 @@ import socket
 import sys
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
@@ -55,7 +54,7 @@ from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 from companion.flight_modes import MAV_AUTOPILOT_INVALID, AutopilotKind  # noqa: E402
 from companion.mavlink_link import normalize_connection  # noqa: E402
 from companion.spec import CameraSpec  # noqa: E402
-from sitl.camera import DepthCamera  # noqa: E402
+from sitl.camera import LANDED_CAMERA_HEIGHT_M, DepthCamera  # noqa: E402
 from sitl.cli_args import (  # noqa: E402
     check_camera,
     cylinder_rows,
@@ -66,7 +65,7 @@ from sitl.cli_args import (  # noqa: E402
     udp_port,
 )
 from sitl.depth_transport import DepthFrameSender  # noqa: E402
-from sitl.vehicle import LANDED_CAMERA_HEIGHT_M, EventLog  # noqa: E402
+from sitl.event_log import EventLog  # noqa: E402
 
 POSE_TIMEOUT_S = 0.5  # older telemetry: no frames for that vehicle, and it is not drawn
 HEARTBEAT_PERIOD_S = 1.0
@@ -485,7 +484,7 @@ class DepthWorld:
         if not rows:
             return
         camera_ned = np.array(positions)
-        camera_ned[:, 2] = np.minimum(camera_ned[:, 2], -LANDED_CAMERA_HEIGHT_M)  # as sitl.vehicle: above the gear
+        camera_ned[:, 2] = np.minimum(camera_ned[:, 2], -LANDED_CAMERA_HEIGHT_M)  # above the gear, as sitl.vehicle
         yaw = np.array([v.yaw_rad for v in rows])
         depth = self.camera.render(camera_ned, yaw, len(rows), boxes=self.boxes, cylinders=self.cylinders)
         for k, v in enumerate(rows):
@@ -664,8 +663,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    stream = sys.stdout if args.log == "-" else open(Path(args.log), "a", buffering=1)  # noqa: SIM115
-    log = EventLog(stream)
+    log = EventLog.open(args.log)
     try:
         world = DepthWorld(args, log)
     except OSError as err:
@@ -684,8 +682,7 @@ def main(argv: list[str] | None = None) -> int:
         run(world, args.duration, args.camera_hz)
     finally:
         world.close()
-        if stream is not sys.stdout:
-            stream.close()
+        log.close()
     return 0
 
 
