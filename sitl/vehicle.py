@@ -46,8 +46,8 @@ from sitl.cli_args import (
 from sitl.camera import LANDED_CAMERA_HEIGHT_M, DepthCamera
 from sitl.collision import uav_uav_collisions
 from sitl.depth_transport import DepthFrameSender
-from sitl.event_log import EventLog
 from sitl.dynamics import DYNAMICS_NAMES, make_dynamics
+from sitl.event_log import EventLog
 from sitl.mavlink_autopilot import Body, MavlinkUdpLink, SimAutopilot
 
 PHYSICS_DT_S = 0.02
