@@ -17,10 +17,20 @@ What goes over the link:
 
 With a signing key every outgoing message is signed and every unsigned incoming one is
 refused (and reported), so neither setpoints nor goals can be injected without the key.
+
+The link locks onto the first autopilot it hears: its (system, component), on UDP its source
+address, and with signing its link id. Afterwards datagrams from other addresses are dropped
+unparsed, and messages claiming the autopilot's ids on another signing link id (a replay of what
+it sent to the ground station) are dropped; both are counted and reported once, never acted upon.
+Run-time goals therefore reach the companion through the autopilot, which routes the ground
+station's messages onto this link (PX4 ``MAV_x_FORWARD``, ArduPilot's routing), not from a ground
+station sending to the companion's port directly. See :mod:`companion.mavlink_endpoint` for the
+transport (per-datagram parsing, exclusive bind, verify-before-store signing).
 """
 
 from __future__ import annotations
 
+import errno
 import math
 import os
 import re
@@ -41,6 +51,7 @@ from companion.flight_modes import (  # noqa: E402
     is_landing_mode,
     mode_name,
 )
+from companion.mavlink_endpoint import UdpEndpoint, VerifyFirstMAVLink, new_parser, setup_signing  # noqa: E402
 
 mavutil.set_dialect("common")
 mavlink = mavutil.mavlink
@@ -54,6 +65,15 @@ _TYPE_MASK_POSITION_IGNORED = 0b111
 _WORLD_VELOCITY_FRAMES = {1, 14, 16, 18}  # LOCAL_NED, MOCAP_NED, VISION_NED, ESTIM_NED
 _BODY_VELOCITY_FRAMES = {8, 9, 12}  # BODY_NED, BODY_OFFSET_NED, BODY_FRD
 _NORTH_ALIGNED_POSE_FRAMES = {1, 14, 16, 18}
+#: Telemetry beyond these is garbage, not a vehicle state: refused like NaN (issue 16, item 13).
+MAX_ODOMETRY_DISTANCE_M = 1.0e6  # local NED position: 1000 km from the origin
+MAX_ODOMETRY_SPEED_M_S = 150.0  # per axis: well above any multirotor
+MAX_BODY_RATE_RAD_S = 35.0  # per axis: 2000 deg/s, the full scale of common IMU gyros
+#: A body-to-NED attitude quaternion must be a unit one within this tolerance (float32 on the wire).
+QUATERNION_NORM_TOLERANCE = 0.1
+#: ODOMETRY counts as flowing (and is preferred to LOCAL_POSITION_NED + ATTITUDE) while its last
+#: sample, good or refused, is younger than this; an ODOMETRY fault is dropped once it is older.
+ODOMETRY_SOURCE_SWITCH_S = 0.5
 MAV_RESULT_NAMES = {0: "ACCEPTED", 1: "TEMPORARILY_REJECTED", 2: "DENIED", 3: "UNSUPPORTED", 4: "FAILED",
                     5: "IN_PROGRESS", 6: "CANCELLED"}
 COMMAND_NAMES = {400: "ARM/DISARM", 176: "DO_SET_MODE", 22: "NAV_TAKEOFF", 21: "NAV_LAND", 511: "SET_MESSAGE_INTERVAL"}
@@ -178,8 +198,24 @@ def euler_yaw_rate(roll: float, pitch: float, pitchspeed: float, yawspeed: float
     return (pitchspeed * math.sin(roll) + yawspeed * math.cos(roll)) / max(math.cos(pitch), 1e-3)
 
 
+class OdometryInvalid(ValueError):
+    """Telemetry whose values cannot be a vehicle state (non-finite or out of range)."""
+
+
+def _check_finite_in_range(source: str, what: str, values, limit: float) -> None:
+    """Raise :class:`OdometryInvalid` naming ``source`` and ``what`` if a value is NaN/inf or beyond ``limit``."""
+    array = np.asarray(values, dtype=np.float64)
+    if not np.all(np.isfinite(array)):
+        raise OdometryInvalid(f"{source} holds non-finite {what}")
+    if np.any(np.abs(array) > limit):
+        raise OdometryInvalid(f"{source} holds out-of-range {what} (max |value| {float(np.max(np.abs(array))):.3g} > {limit:g})")
+
+
 def odometry_from_msg(msg, received_s: float) -> Odometry:
     """Odometry from an ODOMETRY message; raise ValueError for frames it cannot use.
+
+    Raises :class:`OdometryInvalid` (a ValueError) for values no vehicle can have: NaN/inf or
+    out-of-range position, velocity, attitude quaternion or angular rates.
 
     ``child_frame_id`` says in which frame the velocity is: PX4 up to 1.13 sends
     ``MAV_FRAME_BODY_FRD`` with the velocity in the body frame, PX4 1.14+ usually
@@ -187,25 +223,37 @@ def odometry_from_msg(msg, received_s: float) -> Odometry:
     """
     if msg.frame_id not in _NORTH_ALIGNED_POSE_FRAMES:
         raise ValueError(f"ODOMETRY frame_id {msg.frame_id} is not a north-aligned local frame")
+    if msg.child_frame_id not in _BODY_VELOCITY_FRAMES | _WORLD_VELOCITY_FRAMES:
+        raise ValueError(f"ODOMETRY child_frame_id {msg.child_frame_id} is not a frame this companion knows")
+    _check_finite_in_range("ODOMETRY", "position", [msg.x, msg.y, msg.z], MAX_ODOMETRY_DISTANCE_M)
+    _check_finite_in_range("ODOMETRY", "velocity", [msg.vx, msg.vy, msg.vz], MAX_ODOMETRY_SPEED_M_S)
+    _check_finite_in_range("ODOMETRY", "attitude", msg.q, 1.0 + QUATERNION_NORM_TOLERANCE)
+    norm = math.sqrt(sum(float(v) ** 2 for v in msg.q))
+    if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+        raise OdometryInvalid(f"ODOMETRY attitude is not a unit quaternion (|q| = {norm:.3f})")
+    _check_finite_in_range("ODOMETRY", "angular rates", [msg.rollspeed, msg.pitchspeed, msg.yawspeed],
+                           MAX_BODY_RATE_RAD_S)
     roll, pitch, yaw = quaternion_to_euler(msg.q)
     vel = np.array([msg.vx, msg.vy, msg.vz], dtype=np.float64)
     if msg.child_frame_id in _BODY_VELOCITY_FRAMES:
         vel = body_to_ned_matrix(roll, pitch, yaw) @ vel
-    elif msg.child_frame_id not in _WORLD_VELOCITY_FRAMES:
-        raise ValueError(f"ODOMETRY child_frame_id {msg.child_frame_id} is not a frame this companion knows")
     pos = np.array([msg.x, msg.y, msg.z], dtype=np.float64)
-    if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(vel)) and math.isfinite(yaw)):
-        raise ValueError("ODOMETRY holds non-finite values (estimate invalid)")
     return Odometry(pos, vel, roll, pitch, yaw, euler_yaw_rate(roll, pitch, msg.pitchspeed, msg.yawspeed),
                     received_s, "ODOMETRY")
 
 
 def odometry_from_local_position(lpn, lpn_s: float, att, att_s: float) -> Odometry:
-    """Odometry from LOCAL_POSITION_NED (NED position and velocity) + ATTITUDE (ArduPilot)."""
+    """Odometry from LOCAL_POSITION_NED (NED position and velocity) + ATTITUDE (ArduPilot).
+
+    Raises :class:`OdometryInvalid` for non-finite or out-of-range values.
+    """
+    _check_finite_in_range("LOCAL_POSITION_NED", "position", [lpn.x, lpn.y, lpn.z], MAX_ODOMETRY_DISTANCE_M)
+    _check_finite_in_range("LOCAL_POSITION_NED", "velocity", [lpn.vx, lpn.vy, lpn.vz], MAX_ODOMETRY_SPEED_M_S)
+    _check_finite_in_range("ATTITUDE", "attitude", [att.roll, att.pitch, att.yaw], 2 * math.pi)
+    _check_finite_in_range("ATTITUDE", "angular rates", [att.rollspeed, att.pitchspeed, att.yawspeed],
+                           MAX_BODY_RATE_RAD_S)
     pos = np.array([lpn.x, lpn.y, lpn.z], dtype=np.float64)
     vel = np.array([lpn.vx, lpn.vy, lpn.vz], dtype=np.float64)
-    if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(vel)) and math.isfinite(att.yaw)):
-        raise ValueError("LOCAL_POSITION_NED/ATTITUDE hold non-finite values")
     return Odometry(pos, vel, att.roll, att.pitch, att.yaw,
                     euler_yaw_rate(att.roll, att.pitch, att.pitchspeed, att.yawspeed),
                     min(lpn_s, att_s), "LOCAL_POSITION_NED+ATTITUDE")
@@ -244,7 +292,7 @@ class PendingCommand:
 class LinkEvent:
     """Something the control loop must know about: a goal, a refused message, an autopilot text."""
 
-    kind: str  # "goal", "refused_unsigned", "statustext", "odometry_frame", "io_error"
+    kind: str  # "goal", "refused_unsigned", "statustext", "odometry_frame", "io_error", "ignored_traffic"
     detail: dict = field(default_factory=dict)
 
 
@@ -267,6 +315,14 @@ class AutopilotLink:
         self.conn = None
         self.heartbeat: Heartbeat | None = None
         self.odometry: Odometry | None = None
+        #: Why the latest odometry sample was refused (e.g. "odometry invalid: ODOMETRY holds
+        #: non-finite angular rates"), or None; cleared by the next good sample of that source.
+        self.odometry_fault: str | None = None
+        self._odometry_fault_source: str | None = None
+        self._odometry_fault_s = -math.inf
+        self._autopilot_link_id: int | None = None  # signing link id of the autopilot's stream
+        self.dropped_foreign_link = 0  # autopilot ids on another signing link id (replays)
+        self._reported_foreign_address = self._reported_foreign_link = False
         self._lpn = self._att = None
         self._lpn_s = self._att_s = -1.0
         self._odometry_refused_logged = False
@@ -278,18 +334,34 @@ class AutopilotLink:
 
     # ------------------------------------------------------------------ connection
     def open(self) -> None:
-        """Open the port or socket (does not wait for the autopilot)."""
+        """Open the port or socket (does not wait for the autopilot).
+
+        UDP goes through our own :class:`UdpEndpoint` (exclusive bind, one datagram at a time,
+        one peer); TCP and serial through pymavlink's stream connection.
+        """
+        scheme, _, rest = self.connection.partition(":")
         try:
-            self.conn = mavutil.mavlink_connection(self.connection, source_system=1,
-                                                   source_component=MAV_COMP_ID_ONBOARD_COMPUTER,
-                                                   dialect="common", autoreconnect=True)
+            if scheme in ("udpin", "udpout"):
+                host, _, port = rest.rpartition(":")
+                self.conn = UdpEndpoint(scheme, host, int(port), 1, MAV_COMP_ID_ONBOARD_COMPUTER)
+            else:
+                self.conn = mavutil.mavlink_connection(self.connection, source_system=1,
+                                                       source_component=MAV_COMP_ID_ONBOARD_COMPUTER,
+                                                       dialect="common", autoreconnect=True)
+                # A byte stream keeps pymavlink's parser, with the verify-before-store signature check.
+                self.conn.mav = new_parser(self.conn, 1, MAV_COMP_ID_ONBOARD_COMPUTER)
         except ModuleNotFoundError as err:
             raise LinkError(f"cannot open {self.connection}: {err.name} is missing (pip install pyserial for serial links)") from err
-        except Exception as err:  # serial.SerialException, OSError, socket errors
+        except OSError as err:
+            if err.errno == errno.EADDRINUSE:
+                raise LinkError(f"cannot open {self.connection}: address already in use (another companion or "
+                                "MAVLink router holds this port; stop it or pick another port)") from err
             raise LinkError(f"cannot open {self.connection}: {err}") from err
-        self.conn.mav.robust_parsing = True
+        except Exception as err:  # serial.SerialException, socket errors
+            raise LinkError(f"cannot open {self.connection}: {err}") from err
+        assert isinstance(self.conn.mav, VerifyFirstMAVLink)
         if self.signing_key is not None:
-            self.conn.setup_signing(self.signing_key, sign_outgoing=True, allow_unsigned_callback=self._refuse_unsigned)
+            setup_signing(self.conn.mav, self.signing_key, self._refuse_unsigned)
 
     def _refuse_unsigned(self, _mav, msg_id: int) -> bool:
         self.refused_unsigned += 1
@@ -343,7 +415,29 @@ class AutopilotLink:
             names = sorted({self._msg_name(i) for i in self._refused_ids})
             events.append(LinkEvent("refused_unsigned", {"messages": names, "count": len(self._refused_ids)}))
             self._refused_ids.clear()
+        self._report_ignored_traffic(events)
         return events
+
+    @property
+    def dropped_foreign_address(self) -> int:
+        """Datagrams dropped because they came from another address than the autopilot's (UDP)."""
+        return getattr(self.conn, "dropped_foreign", 0)
+
+    def _report_ignored_traffic(self, events: list[LinkEvent]) -> None:
+        """One event the first time traffic is dropped for each reason (the counters keep counting)."""
+        hb = self.heartbeat
+        if not self._reported_foreign_address and self.dropped_foreign_address:
+            self._reported_foreign_address = True
+            events.append(LinkEvent("ignored_traffic", {
+                "reason": f"ignoring MAVLink from addresses other than the autopilot's "
+                          f"{self.conn.locked_address[0]}:{self.conn.locked_address[1]}",
+                "count": self.dropped_foreign_address}))
+        if not self._reported_foreign_link and self.dropped_foreign_link:
+            self._reported_foreign_link = True
+            events.append(LinkEvent("ignored_traffic", {
+                "reason": f"ignoring signed messages claiming the autopilot (system {hb.sysid}, component "
+                          f"{hb.compid}) on link id other than {self._autopilot_link_id} (replayed?)",
+                "count": self.dropped_foreign_link}))
 
     @staticmethod
     def _msg_name(msg_id: int) -> str:
@@ -354,17 +448,36 @@ class AutopilotLink:
         hb = self.heartbeat
         return hb is not None and msg.get_srcSystem() == hb.sysid and msg.get_srcComponent() == hb.compid
 
+    def _from_another_link(self, msg) -> bool:
+        """A signed message with the autopilot's ids on another link id than the autopilot's own.
+
+        The autopilot signs all it sends to us with one link id; the same ids on another link id
+        are its traffic to someone else (the ground station), captured and replayed.
+        """
+        return (self._autopilot_link_id is not None and msg.get_signed() and self._from_autopilot(msg)
+                and msg.get_link_id() != self._autopilot_link_id)
+
     def _handle(self, msg, now_s: float, events: list[LinkEvent]) -> None:
         kind = msg.get_type()
+        if kind == "BAD_DATA":
+            return
+        if self._from_another_link(msg):
+            self.dropped_foreign_link += 1
+            return
         if kind == "HEARTBEAT":
             self._on_heartbeat(msg, now_s)
         elif kind == "ODOMETRY" and self._from_autopilot(msg):
             try:
-                self.odometry = odometry_from_msg(msg, now_s)
+                odometry = odometry_from_msg(msg, now_s)
+            except OdometryInvalid as err:
+                self._set_odometry_fault("ODOMETRY", str(err), now_s)
             except ValueError as err:
                 if not self._odometry_refused_logged:
                     self._odometry_refused_logged = True
                     events.append(LinkEvent("odometry_frame", {"error": str(err)}))
+            else:
+                self.odometry = odometry
+                self._clear_odometry_fault("ODOMETRY")
         elif kind == "LOCAL_POSITION_NED" and self._from_autopilot(msg):
             self._lpn, self._lpn_s = msg, now_s
             self._merge_local_position()
@@ -392,17 +505,43 @@ class AutopilotLink:
             return  # another vehicle on a shared link: we fly the first one we saw
         if self.heartbeat is None:
             self.conn.mav.srcSystem = src[0]  # components of one vehicle share its system id
+            self._lock_onto(msg)
         self.heartbeat = Heartbeat(src[0], src[1], kind, msg.custom_mode, msg.base_mode, msg.system_status, now_s)
+
+    def _lock_onto(self, msg) -> None:
+        """Remember the autopilot's address (UDP) and signing link id: the only ones accepted from now on."""
+        address = getattr(msg, "_source_addr", None)
+        if address is not None and hasattr(self.conn, "lock"):
+            self.conn.lock(address)
+        if self.signing_key is not None and msg.get_signed():
+            self._autopilot_link_id = msg.get_link_id()
+
+    def _set_odometry_fault(self, source: str, error: str, now_s: float) -> None:
+        self.odometry_fault = f"odometry invalid: {error}"
+        self._odometry_fault_source = source
+        self._odometry_fault_s = now_s
+
+    def _clear_odometry_fault(self, source: str) -> None:
+        if self._odometry_fault_source == source:
+            self.odometry_fault = self._odometry_fault_source = None
 
     def _merge_local_position(self) -> None:
         if self._lpn is None or self._att is None:
             return
-        if self.odometry is not None and self.odometry.source == "ODOMETRY" and self._lpn_s - self.odometry.received_s < 0.5:
-            return  # ODOMETRY is flowing: it is the better source (one consistent sample)
+        source = "LOCAL_POSITION_NED+ATTITUDE"
         try:
-            self.odometry = odometry_from_local_position(self._lpn, self._lpn_s, self._att, self._att_s)
-        except ValueError:
-            pass
+            odometry = odometry_from_local_position(self._lpn, self._lpn_s, self._att, self._att_s)
+        except OdometryInvalid as err:
+            self._set_odometry_fault(source, str(err), max(self._lpn_s, self._att_s))
+            return
+        self._clear_odometry_fault(source)
+        if self._odometry_fault_source == "ODOMETRY" and self._lpn_s - self._odometry_fault_s >= ODOMETRY_SOURCE_SWITCH_S:
+            self._clear_odometry_fault("ODOMETRY")  # ODOMETRY went silent: this pair is the source now
+        if self.odometry is not None and self.odometry.source == "ODOMETRY" and self._lpn_s - self.odometry.received_s < ODOMETRY_SOURCE_SWITCH_S:
+            return  # ODOMETRY is flowing: it is the better source (one consistent sample)
+        if self._odometry_fault_source == "ODOMETRY":
+            return  # the estimator just sent garbage on ODOMETRY: do not fly on its other output meanwhile
+        self.odometry = odometry
 
     def _goal_from(self, msg) -> list[float] | None:
         """A run-time goal: addressed to us, in LOCAL_NED, with the position fields valid."""

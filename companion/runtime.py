@@ -375,6 +375,8 @@ class Companion:
 
     def _input_problem(self, now: float, need_depth: bool = True) -> str | None:
         """Why the inputs cannot be trusted right now, or None."""
+        if self.link.odometry_fault is not None:  # refused at the link: blame the telemetry, not the policy
+            return self.link.odometry_fault
         odom_age = self.link.odometry_age_s(now)
         if odom_age > self.stale_s:
             return "no odometry yet" if math.isinf(odom_age) else f"odometry stale ({odom_age * 1000:.0f} ms old)"
