@@ -450,3 +450,37 @@ def test_nan_body_rates_in_odometry_hold_within_two_periods_with_the_odometry_re
     assert len(during) >= 10 and all(r.get("hold") == reason and r["cmd"] == [0.0, 0.0, 0.0] for r in during)
     failsafes = [r for r in records if r.get("event") == "failsafe" and t_fault <= r["t"] < t_clear]
     assert len(failsafes) == 1 and failsafes[0]["reason"] == reason
+
+
+def test_over_tcp_the_stream_parser_stays_and_replays_from_another_link_id_are_ignored():
+    """A byte stream (ArduPilot's tcp:) keeps pymavlink's parser, with the same lock and signature check."""
+    server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    server.bind(("127.0.0.1", 0))
+    server.listen(1)
+    link = AutopilotLink(f"tcp:127.0.0.1:{server.getsockname()[1]}", signing_key=KEY)
+    link.open()
+    conn, _ = server.accept()
+    try:
+        ap = _codec(conn, None, key=KEY, link_id=1)
+        ap.file.write = conn.sendall  # a stream: no address
+        captured = []
+        gcs_side = _codec(conn, None, key=KEY, link_id=2)
+        gcs_side.file.write = captured.append  # what the autopilot sent its ground station (not sent here)
+        gcs_side.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4,
+                                mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, PX4_POSCTL, mavlink.MAV_STATE_STANDBY)
+        ap.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4,
+                          mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavlink.MAV_MODE_FLAG_SAFETY_ARMED,
+                          PX4_OFFBOARD, mavlink.MAV_STATE_ACTIVE)
+        assert link.wait_for_autopilot(3.0).custom_mode == PX4_OFFBOARD
+        forger = _codec(conn, None, key=WRONG_KEY, link_id=1, timestamp=2**48 - 100)
+        forger.file.write = conn.sendall
+        forger.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, 0, PX4_POSCTL, 0)
+        conn.sendall(captured[0])  # the replay
+        _pump(link, lambda: _dropped(link)[1] >= 1 or link.heartbeat.custom_mode != PX4_OFFBOARD, 1.0)
+        assert link.heartbeat.custom_mode == PX4_OFFBOARD and _dropped(link)[1] == 1
+        ap.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, 0, PX4_OFFBOARD | 1, 0)
+        assert _pump(link, lambda: link.heartbeat.custom_mode == PX4_OFFBOARD | 1, 1.0)  # still heard after the forgery
+    finally:
+        link.close()
+        conn.close()
+        server.close()
