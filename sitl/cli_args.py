@@ -53,7 +53,7 @@ def int_range(low: int, high: int | None = None):
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
         if value < low or (high is not None and value > high):
-            limit = f">= {low}" if high is None else f"in {low}..{high}"
+            limit = f">= {low}" if high is None else f">= {low} and <= {high}"
             raise argparse.ArgumentTypeError(f"must be {limit}, got {value}")
         return value
     return parse
@@ -90,10 +90,9 @@ def float_range(low: float, high: float, *, low_open: bool = False, high_open: b
         above = value > low if low_open else value >= low
         below = value < high if high_open else value <= high
         if not (above and below):
-            if high == math.inf:
-                raise argparse.ArgumentTypeError(f"must be a finite number {'>' if low_open else '>='} {low:g}, got {text}")
-            lo, hi = "(" if low_open else "[", ")" if high_open else "]"
-            raise argparse.ArgumentTypeError(f"must be in {lo}{low:g}, {high:g}{hi}, got {text}")
+            upper = "" if high == math.inf else f" and {'<' if high_open else '<='} {high:g}"
+            raise argparse.ArgumentTypeError(f"must be a finite number {'>' if low_open else '>='} {low:g}{upper}, "
+                                             f"got {text}")
         return value
     return parse
 
