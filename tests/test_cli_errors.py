@@ -15,7 +15,7 @@ import sys
 
 import pytest
 
-from tests.companion_helpers import REPO, env
+from tests.companion_helpers import env
 
 UNWRITABLE_DIR = "/proc/swarmnav-no-such-dir"  # /proc refuses new entries, even to root
 MISSING_DIR = "/nonexistent-swarmnav-dir"
