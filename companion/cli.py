@@ -17,10 +17,19 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import socket
 import sys
 from dataclasses import asdict
+from pathlib import Path
 
-from companion.spec import DEFAULT_ACTION_SPEC, DEFAULT_CAMERA_SPEC, STATE_NAMES
+from companion.spec import (
+    DEFAULT_ACTION_SPEC,
+    DEFAULT_CAMERA_SPEC,
+    HEARTBEAT_TIMEOUT_MAX_S,
+    LINK_TIMEOUT_MAX_S,
+    LINK_TIMEOUT_MIN_S,
+    STATE_NAMES,
+)
 
 
 def describe() -> dict:
@@ -52,14 +61,29 @@ def _goal(text: str):
     return np.asarray(values)
 
 
-def _positive(name: str, upper: float = math.inf):
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser, but a bad value prints one line, ``companion: error: ...``, and exits 2.
+
+    argparse prints the usage block first; in the systemd journal the reason then hides
+    below it. ``--help`` still shows the usage.
+    """
+
+    def error(self, message: str):  # noqa: D102 - argparse's API
+        self.exit(2, f"{self.prog}: error: {' '.join(message.split())} (see --help)\n")
+
+
+def _positive(name: str, upper: float = math.inf, lower: float = 0.0):
+    """A parser of finite numbers in (0, upper] (or [lower, upper] when ``lower`` > 0): NaN and inf never pass."""
     def parse(text: str) -> float:
         try:
             value = float(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"{name} must be a number, got {text!r}") from None
-        if not (0 < value <= upper):
-            raise argparse.ArgumentTypeError(f"{name} must be > 0{'' if upper == math.inf else f' and <= {upper:g}'}, got {text!r}")
+        in_range = lower <= value <= upper if lower > 0 else 0 < value <= upper
+        if not (math.isfinite(value) and in_range):
+            low_text = f">= {lower:g}" if lower > 0 else "> 0"
+            raise argparse.ArgumentTypeError(f"{name} must be {low_text}{'' if upper == math.inf else f' and <= {upper:g}'}"
+                                             f" (a finite number), got {text!r}")
         return value
     return parse
 
@@ -68,9 +92,33 @@ def _connection(text: str) -> str:
     from companion.mavlink_link import normalize_connection
 
     try:
-        normalize_connection(text)
+        normalized = normalize_connection(text)
     except ValueError as err:
         raise argparse.ArgumentTypeError(str(err)) from None
+    scheme, _, rest = normalized.partition(":")
+    if scheme in ("udpin", "udpout", "tcp", "tcpin"):  # a host typo fails here, not at the first send
+        host = rest.rpartition(":")[0]
+        try:
+            socket.getaddrinfo(host, None, socket.AF_INET)
+        except (socket.gaierror, UnicodeError) as err:
+            raise argparse.ArgumentTypeError(f"invalid connection {text!r}: cannot resolve host {host!r} "
+                                             f"({getattr(err, 'strerror', None) or err})") from None
+    return text
+
+
+def _output_file(text: str) -> str:
+    """``-`` (stdout) or a file path in an existing directory.
+
+    A missing directory is refused (not created), for ``--log`` and ``--record`` alike: on a
+    vehicle a typo must not scatter files, and the error must come before take-off.
+    """
+    if text == "-":
+        return text
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a directory, expected a file")
+    if not path.parent.is_dir():
+        raise argparse.ArgumentTypeError(f"cannot write {text}: no such directory {str(path.parent)!r}")
     return text
 
 
@@ -85,17 +133,19 @@ def _camera(text: str) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="companion", description=__doc__,
+    parser = _Parser(prog="companion", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--describe", action="store_true", help="print the observation/action contract as JSON and exit")
     link = parser.add_argument_group("link")
     link.add_argument("--connect", type=_connection, metavar="CONN",
                       help="MAVLink connection: udp:14540 (listen, PX4 SITL's onboard port), udpin:HOST:PORT, "
                            "udpout:HOST:PORT, tcp:HOST:PORT, /dev/ttyTHS1,921600")
-    link.add_argument("--heartbeat-timeout", type=_positive("--heartbeat-timeout"), default=10.0, metavar="S",
+    link.add_argument("--heartbeat-timeout", type=_positive("--heartbeat-timeout", HEARTBEAT_TIMEOUT_MAX_S), default=10.0, metavar="S",
                       help="give up if no autopilot heartbeat arrives within S seconds (default 10)")
-    link.add_argument("--link-timeout", type=_positive("--link-timeout"), default=2.0, metavar="S",
-                      help="declare the link lost after S seconds without a heartbeat (default 2)")
+    link.add_argument("--link-timeout", type=_positive("--link-timeout", LINK_TIMEOUT_MAX_S, LINK_TIMEOUT_MIN_S),
+                      default=2.0, metavar="S",
+                      help=f"declare the link lost after S seconds without a heartbeat, {LINK_TIMEOUT_MIN_S:g}.."
+                           f"{LINK_TIMEOUT_MAX_S:g} (default 2)")
     link.add_argument("--signing-key", metavar="FILE",
                       help="MAVLink 2 signing key (32 bytes or 64 hex characters): sign everything, refuse unsigned input")
     link.add_argument("--stream-rate", type=_positive("--stream-rate", 200), default=50.0, metavar="HZ",
@@ -116,9 +166,9 @@ def build_parser() -> argparse.ArgumentParser:
     flight.add_argument("--no-camera-sync", action="store_true",
                         help="do not phase-lock the control ticks to depth frame arrivals")
     output = parser.add_argument_group("output")
-    output.add_argument("--log", default="-", metavar="PATH",
+    output.add_argument("--log", type=_output_file, default="-", metavar="PATH",
                         help="JSON-lines log of every control step and event (default '-': stdout)")
-    output.add_argument("--record", metavar="PATH", help="write a flight recording (depth + state + action)")
+    output.add_argument("--record", type=_output_file, metavar="PATH", help="write a flight recording (depth + state + action)")
     return parser
 
 

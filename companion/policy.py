@@ -31,6 +31,7 @@ a :class:`PolicyFileError` that says what is wrong.
 from __future__ import annotations
 
 import json
+import math
 import warnings
 import zipfile
 from dataclasses import dataclass
@@ -38,7 +39,17 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.spec import STATE_NAMES, ActionSpec, CameraSpec
+from companion.spec import (
+    CONTROL_PERIOD_MAX_S,
+    CONTROL_PERIOD_MIN_S,
+    DEFAULT_ACTION_SPEC,
+    POLICY_MAX_FRAMES,
+    POLICY_MAX_IMAGE_SIDE_PX,
+    POLICY_MAX_RANGE_M,
+    STATE_NAMES,
+    ActionSpec,
+    CameraSpec,
+)
 
 FORMAT_VERSION = 1
 METADATA_FILE = "policy.json"
@@ -117,25 +128,100 @@ def _require(cond: bool, path: str, message: str) -> None:
         raise PolicyFileError(f"{path}: {message}")
 
 
-def _check_metadata(meta: dict, path: str) -> None:
+def _is_number(value: object) -> bool:
+    """A JSON number (``true``/``false`` are not numbers, although Python's bool is an int)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _as_float(value: int | float) -> float:
+    """``value`` as a float; an integer too big for a float (JSON allows any) becomes inf."""
+    try:
+        return float(value)
+    except OverflowError:
+        return math.inf
+
+
+def _finite_number(value: object, path: str, name: str) -> float:
+    _require(_is_number(value), path, f"{name} must be a number, file says {value!r:.40}")
+    number = _as_float(value)
+    _require(math.isfinite(number), path, f"{name} must be finite, file says {value!r:.40}")
+    return number
+
+
+def _integer(value: object, path: str, name: str, low: int, high: int) -> int:
+    ok = _is_number(value) and math.isfinite(_as_float(value)) and _as_float(value).is_integer()
+    _require(ok, path, f"{name} must be an integer, file says {value!r:.40}")
+    _require(low <= value <= high, path, f"{name} must be in {low}..{high}, file says {value!r}")
+    return int(value)
+
+
+def _numbers(value: object, path: str, name: str, count: int) -> tuple[float, ...]:
+    _require(isinstance(value, list) and len(value) == count, path,
+             f"{name} must be a list of {count} numbers, file says {value!r}")
+    return tuple(_finite_number(v, path, f"{name}[{i}]") for i, v in enumerate(value))
+
+
+def _check_metadata(meta: object, path: str) -> tuple[CameraSpec, ActionSpec, float]:
+    """Check ``policy.json`` field by field (types first) against this companion's spec.
+
+    Returns the camera, action bounds and control period it declares; raises
+    :class:`PolicyFileError` naming the first bad field. Nothing from the file is used
+    before its type and range are known, so a hostile file gets a reason, never a traceback.
+    """
     _require(isinstance(meta, dict), path, "policy.json is not a JSON object")
     version = meta.get("format_version")
-    _require(version == FORMAT_VERSION, path,
+    _require(_is_number(version) and version == FORMAT_VERSION, path,
              f"unsupported policy format_version {version!r} (this companion reads version {FORMAT_VERSION})")
     for key in ("depth", "control_period_s", "state_names", "action", "body_frame", "provenance"):
         _require(key in meta, path, f"policy.json lacks the field {key!r}")
+
     depth = meta["depth"]
+    _require(isinstance(depth, dict), path, f"depth must be a JSON object, file says {depth!r}")
     for key in ("height", "width", "frames", "hfov_deg", "max_range_m", "units", "kind"):
         _require(key in depth, path, f"policy.json depth lacks the field {key!r}")
     _require(depth["units"] == "m" and depth["kind"] == "planar", path,
-             f"depth must be planar metres, file says {depth['kind']} in {depth['units']}")
-    _require(list(meta["state_names"]) == list(STATE_NAMES), path,
-             f"state layout {meta['state_names']} differs from this companion's {list(STATE_NAMES)}")
+             f"depth must be planar metres, file says {depth['kind']!r} in {depth['units']!r}")
+    _require(depth.get("order", "oldest_first") == "oldest_first", path,
+             f"depth frames must be ordered oldest_first, file says {depth.get('order')!r}")
+    side = POLICY_MAX_IMAGE_SIDE_PX
+    height = _integer(depth["height"], path, "depth height", 1, side)
+    width = _integer(depth["width"], path, "depth width", 1, side)
+    frames = _integer(depth["frames"], path, "depth frames", 1, POLICY_MAX_FRAMES)
+    hfov_deg = _finite_number(depth["hfov_deg"], path, "depth hfov_deg")
+    max_range_m = _finite_number(depth["max_range_m"], path, "depth max_range_m")
+    _require(0 < max_range_m <= POLICY_MAX_RANGE_M, path,
+             f"depth max_range_m must be in (0, {POLICY_MAX_RANGE_M:g}] m, file says {max_range_m:g}")
+    try:
+        camera = CameraSpec(width=width, height=height, hfov_deg=hfov_deg, max_range_m=max_range_m, frames=frames)
+    except ValueError as err:
+        raise PolicyFileError(f"{path}: invalid depth specification ({err})") from None
+
+    period = meta["control_period_s"]
+    _require(_is_number(period), path, f"control_period_s must be a number of seconds, file says {period!r:.40}")
+    period = _as_float(period)
+    _require(CONTROL_PERIOD_MIN_S <= period <= CONTROL_PERIOD_MAX_S, path,
+             f"control_period_s must be in {CONTROL_PERIOD_MIN_S:g}..{CONTROL_PERIOD_MAX_S:g} s, file says {period!r}")
+
+    names = meta["state_names"]
+    _require(isinstance(names, list) and names == list(STATE_NAMES), path,
+             f"state layout {names!r} differs from this companion's {list(STATE_NAMES)}")
+    _require(isinstance(meta["body_frame"], str), path, "body_frame must be a string")
+    _require(isinstance(meta["provenance"], dict), path, "provenance must be a JSON object")
+
+    # The action must be exactly this companion's (names and order), with finite bounds inside
+    # the paper's: a file cannot widen what the companion will command.
     action = meta["action"]
-    _require(len(action.get("names", [])) == 3 and len(action.get("low", [])) == 3 and len(action.get("high", [])) == 3,
-             path, "action must name 3 components with low and high bounds")
-    _require(all(lo < hi for lo, hi in zip(action["low"], action["high"])), path, "action low must be below high")
-    _require(float(meta["control_period_s"]) > 0, path, "control_period_s must be > 0")
+    _require(isinstance(action, dict), path, f"action must be a JSON object, file says {action!r}")
+    spec = DEFAULT_ACTION_SPEC
+    _require(action.get("names") == list(spec.names), path,
+             f"action names {action.get('names')!r} differ from this companion's {list(spec.names)}")
+    low = _numbers(action.get("low"), path, "action low", spec.dim)
+    high = _numbers(action.get("high"), path, "action high", spec.dim)
+    for name, lo, hi, lo_max, hi_max in zip(spec.names, low, high, spec.low, spec.high):
+        _require(lo < hi, path, f"action {name}: low {lo:g} must be below high {hi:g}")
+        _require(lo_max <= lo and hi <= hi_max, path,
+                 f"action {name} bounds [{lo:g}, {hi:g}] exceed the onboard limits [{lo_max:g}, {hi_max:g}]")
+    return camera, ActionSpec(spec.names, low, high), float(period)
 
 
 def load_policy(path: str | Path, *, check_forward: bool = True) -> LoadedPolicy:
@@ -161,26 +247,20 @@ def load_policy(path: str | Path, *, check_forward: bool = True) -> LoadedPolicy
         meta = json.loads(extra[METADATA_FILE])
     except json.JSONDecodeError as err:
         raise PolicyFileError(f"{path}: {METADATA_FILE} is not valid JSON ({err})") from err
-    _check_metadata(meta, path)
-    depth = meta["depth"]
-    try:
-        camera = CameraSpec(width=int(depth["width"]), height=int(depth["height"]), hfov_deg=float(depth["hfov_deg"]),
-                            max_range_m=float(depth["max_range_m"]), frames=int(depth["frames"]))
-    except ValueError as err:
-        raise PolicyFileError(f"{path}: invalid depth specification ({err})") from err
-    action = ActionSpec(tuple(meta["action"]["names"]), tuple(map(float, meta["action"]["low"])),
-                        tuple(map(float, meta["action"]["high"])))
+    camera, action, period_s = _check_metadata(meta, path)
     module.eval()
-    policy = LoadedPolicy(module, meta, camera, action, float(meta["control_period_s"]), path)
+    policy = LoadedPolicy(module, meta, camera, action, period_s, path)
     if check_forward:
         blank_depth = np.full((1, camera.frames, camera.height, camera.width), camera.max_range_m, np.float32)
         blank_state = np.zeros((1, len(STATE_NAMES)), np.float32)
         blank_state[0, 0] = 10.0
         try:
             out = policy.act(blank_depth, blank_state)
-        except Exception as err:
-            raise PolicyFileError(f"{path}: forward(depth, state) failed on a blank observation ({err})") from err
-        _require(out.shape == (1, 3), path, f"forward returned shape {tuple(out.shape)}, expected (1, 3)")
+        except Exception as err:  # TorchScript errors span many lines: keep the first
+            first_line = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+            raise PolicyFileError(f"{path}: forward(depth, state) failed on a blank observation ({first_line})") from err
+        # Refuse a wrong shape here, by name: later it would only show as a hold blamed on "not finite".
+        _require(out.shape == (1, 3), path, f"policy output has shape {list(out.shape)}, expected [1, 3]")
         _require(bool(np.all(np.isfinite(out))), path, "forward returned non-finite actions")
         low, high = action.low_array() - 1e-5, action.high_array() + 1e-5
         _require(bool(np.all((out >= low) & (out <= high))), path, f"forward returned {out[0]} outside the action bounds")

@@ -24,6 +24,30 @@ STATE_NAMES: tuple[str, ...] = (
 )
 STATE_DIM = len(STATE_NAMES)
 
+#: The policy's control period must lie in this range (seconds). Below 20 ms the loop only burns
+#: CPU and fills the log (no depth camera or autopilot link keeps up); above 1 s the vehicle flies
+#: open-loop for too long between decisions and the systemd watchdog is fed too rarely. ``inf``
+#: would never tick at all.
+CONTROL_PERIOD_MIN_S = 0.02
+CONTROL_PERIOD_MAX_S = 1.0
+
+#: ``--link-timeout`` range (s): autopilots send HEARTBEAT at 1 Hz, so less than 1 s declares a
+#: healthy link lost; more than 10 s leaves a dead link undetected while the vehicle flies on
+#: its last setpoint stream's failsafe (``inf`` would disable link-loss detection).
+LINK_TIMEOUT_MIN_S = 1.0
+LINK_TIMEOUT_MAX_S = 10.0
+#: Longest ``--heartbeat-timeout`` (s) for the first heartbeat at start-up (an autopilot boots in
+#: well under a minute; a systemd unit should fail and restart rather than wait for ever).
+HEARTBEAT_TIMEOUT_MAX_S = 600.0
+
+#: Largest depth image a policy may ask for (pixels per side) and most stacked frames: a bigger
+#: observation cannot be rendered, sent or inferred within a control period on a companion computer
+#: (and a hostile file could otherwise make the loader allocate gigabytes).
+POLICY_MAX_IMAGE_SIDE_PX = 1024
+POLICY_MAX_FRAMES = 16
+#: Largest depth range a policy may declare (metres); depth cameras read far less.
+POLICY_MAX_RANGE_M = 1000.0
+
 
 @dataclass(frozen=True)
 class ActionSpec:

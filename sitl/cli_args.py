@@ -1,38 +1,129 @@
-"""Argument types shared by the simulator's command lines (clear argparse errors, exit 2)."""
+"""Argument types shared by the simulator's command lines (clear argparse errors, exit 2).
+
+Every option of ``sitl.vehicle``, ``sitl.world``, ``sitl.swarm_test`` and ``sitl.train``
+goes through one of these parsers, so a bad value (NaN, inf, negative, zero, huge, wrong
+type, unwritable path, missing file) ends in argparse's one-line ``error: ...`` and exit 2,
+never a traceback. ``companion`` has its own (it must not import ``sitl``).
+"""
 
 from __future__ import annotations
 
 import argparse
 import math
+import os
+import socket
+import tempfile
+from pathlib import Path
+
+from companion.depth_wire import HEADER_SIZE, MAX_DATAGRAM
+
+#: Most vehicles one process simulates: vehicle i is MAVLink system i + 1 (1..255).
+MAX_VEHICLES = 255
+#: Largest rendered depth frame: sitl sends float32 metres, one frame per UDP datagram.
+MAX_CAMERA_PIXELS = (MAX_DATAGRAM - HEADER_SIZE) // 4
+#: Fastest simulated camera (Hz): a RealSense streams depth at up to 90 fps.
+MAX_CAMERA_HZ = 200.0
+#: Most sub-rays per pixel side (the render costs supersample^2 rays per pixel).
+MAX_SUPERSAMPLE = 16
+#: Most torch threads a command line may ask for.
+MAX_THREADS = 256
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse's parser, but a bad value prints one line, ``PROG: error: ...``, and exits 2.
+
+    argparse prints the whole usage block first; in a log or a systemd journal the reason
+    then hides below a wall of options. ``--help`` still shows the usage.
+    """
+
+    def error(self, message: str):  # noqa: D102 - argparse's API
+        self.exit(2, f"{self.prog}: error: {' '.join(message.split())} (see --help)\n")
 
 
 def positive_int(text: str) -> int:
     """An integer >= 1."""
+    return int_range(1)(text)
+
+
+def int_range(low: int, high: int | None = None):
+    """A parser of integers in ``low..high`` (no upper limit if ``high`` is None)."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if value < low or (high is not None and value > high):
+            limit = f">= {low}" if high is None else f">= {low} and <= {high}"
+            raise argparse.ArgumentTypeError(f"must be {limit}, got {value}")
+        return value
+    return parse
+
+
+def integer(text: str) -> int:
+    """Any integer (ranges are checked where the value is used)."""
     try:
-        value = int(text)
+        return int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+
+
+def finite_float(text: str) -> float:
+    """Any finite number."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
     return value
 
 
 def positive_float(text: str) -> float:
     """A finite number > 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not value > 0 or not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
-    return value
+    return float_range(0.0, math.inf, low_open=True)(text)
+
+
+def float_range(low: float, high: float, *, low_open: bool = False, high_open: bool = False):
+    """A parser of finite numbers between ``low`` and ``high`` (``*_open``: that end excluded)."""
+    def parse(text: str) -> float:
+        value = finite_float(text)
+        above = value > low if low_open else value >= low
+        below = value < high if high_open else value <= high
+        if not (above and below):
+            upper = "" if high == math.inf else f" and {'<' if high_open else '<='} {high:g}"
+            raise argparse.ArgumentTypeError(f"must be a finite number {'>' if low_open else '>='} {low:g}{upper}, "
+                                             f"got {text}")
+        return value
+    return parse
 
 
 def udp_port(text: str) -> int:
-    """A port number in 0..65535."""
+    """A port number in 0..65535 (0: none, where the option allows it)."""
     if not text.isdigit() or not 0 <= int(text) <= 65535:
         raise argparse.ArgumentTypeError(f"port must be a number in 0..65535, got {text!r}")
     return int(text)
+
+
+def udp_port_nonzero(text: str) -> int:
+    """A port number in 1..65535 (something is sent to it)."""
+    if not text.isdigit() or not 1 <= int(text) <= 65535:
+        raise argparse.ArgumentTypeError(f"port must be a number in 1..65535, got {text!r}")
+    return int(text)
+
+
+def check_port_block(parser: argparse.ArgumentParser, name: str, first: int, count: int) -> None:
+    """Exit 2 unless ports ``first .. first + count - 1`` all exist."""
+    if first + count - 1 > 65535:
+        parser.error(f"{name} {first}: the ports of {count} vehicles ({first}..{first + count - 1}) would pass 65535")
+
+
+def host(text: str) -> str:
+    """A host name or IPv4 address that resolves now (a typo fails here, not in the first send)."""
+    try:
+        socket.getaddrinfo(text, None, socket.AF_INET, socket.SOCK_DGRAM)
+    except (socket.gaierror, UnicodeError, ValueError) as err:
+        raise argparse.ArgumentTypeError(f"cannot resolve host {text!r} ({getattr(err, 'strerror', None) or err})") from None
+    return text
 
 
 def finite_floats(count: tuple[int, ...], name: str):
@@ -48,15 +139,95 @@ def finite_floats(count: tuple[int, ...], name: str):
     return parse
 
 
+def cylinder(text: str) -> list[float]:
+    """``N,E,R[,H]``: a pole at N,E (m) with radius R > 0 and height H > 0."""
+    values = finite_floats((3, 4), "--cylinder")(text)
+    if values[2] <= 0 or (len(values) == 4 and values[3] <= 0):
+        raise argparse.ArgumentTypeError(f"--cylinder radius and height must be > 0 m, got {text!r}")
+    return values
+
+
+def box(text: str) -> list[float]:
+    """``N,E,D,HN,HE,HD``: a box centre (m) and its half sizes, all > 0."""
+    values = finite_floats((6,), "--box")(text)
+    if min(values[3:]) <= 0:
+        raise argparse.ArgumentTypeError(f"--box half sizes must be > 0 m, got {text!r}")
+    return values
+
+
 def image_size(text: str) -> tuple[int, int]:
-    """``WIDTHxHEIGHT`` in pixels, both >= 1."""
+    """``WIDTHxHEIGHT`` in pixels, both >= 1, small enough for one depth datagram."""
     try:
         width, height = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise argparse.ArgumentTypeError(f"camera size must be WIDTHxHEIGHT, got {text!r}") from None
     if width < 1 or height < 1:
         raise argparse.ArgumentTypeError(f"camera size must be positive, got {text!r}")
+    if width * height > MAX_CAMERA_PIXELS:
+        raise argparse.ArgumentTypeError(f"camera size {width}x{height} has more than the {MAX_CAMERA_PIXELS} pixels "
+                                         "a float32 depth frame can carry in one UDP datagram (e.g. 128x96)")
     return width, height
+
+
+def _writable_dir(directory: Path) -> bool:
+    """Whether a file can be created in ``directory``: tried, since os.access says yes to root on read-only mounts."""
+    if not directory.is_dir():
+        return False
+    try:
+        with tempfile.TemporaryFile(dir=directory):
+            return True
+    except OSError:
+        return False
+
+
+def output_file(text: str) -> str:
+    """A file to write: ``-`` (stdout) or a path whose directory exists and is writable.
+
+    A missing directory is refused rather than created: a typo must not scatter files.
+    """
+    if text == "-":
+        return text
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a directory, expected a file")
+    parent = path.parent
+    if not parent.is_dir():
+        raise argparse.ArgumentTypeError(f"cannot write {text}: no such directory {str(parent)!r}")
+    if not _writable_dir(parent) or (path.exists() and not os.access(path, os.W_OK)):
+        raise argparse.ArgumentTypeError(f"cannot write {text}: permission denied")
+    return text
+
+
+def output_dir(text: str) -> Path:
+    """A directory to write into, created if missing: its nearest existing ancestor must be a writable directory."""
+    path = Path(text)
+    ancestor = path
+    while not ancestor.exists() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if ancestor.exists() and not ancestor.is_dir():
+        raise argparse.ArgumentTypeError(f"cannot write into {text}: {str(ancestor)!r} is not a directory")
+    if not _writable_dir(ancestor if ancestor.exists() else Path.cwd()):
+        raise argparse.ArgumentTypeError(f"cannot write into {text}: permission denied in {str(ancestor)!r}")
+    return path
+
+
+def output_file_in_new_dir(text: str) -> Path:
+    """A file to write whose directory is created if missing (same checks as :func:`output_dir`)."""
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a directory, expected a file")
+    output_dir(str(path.parent))
+    return path
+
+
+def existing_file(text: str) -> str:
+    """A file that exists and can be read."""
+    path = Path(text)
+    if not path.is_file():
+        raise argparse.ArgumentTypeError(f"no such file {text!r}")
+    if not os.access(path, os.R_OK):
+        raise argparse.ArgumentTypeError(f"cannot read {text}: permission denied")
+    return text
 
 
 def cylinder_rows(cylinders: list[list[float]] | None) -> list[list[float]] | None:

@@ -45,7 +45,21 @@ from typing import Protocol
 import numpy as np
 
 from companion.spec import CameraSpec
-from sitl.cli_args import positive_float, positive_int
+from sitl.cli_args import (
+    ArgumentParser,
+    MAX_THREADS,
+    MAX_VEHICLES,
+    float_range,
+    int_range,
+    output_dir,
+    output_file_in_new_dir,
+)
+
+#: Bounds of the evaluation's sizes: beyond them a run would only exhaust memory or never end.
+MAX_EPISODES = 1_000_000
+MAX_EPISODE_STEPS = 100_000
+MAX_BATCH = 10_000
+MAX_RADIUS_M = 10_000.0
 from sitl.camera import StereoNoise
 from sitl.config import DENSITIES, SCENARIOS, ScenarioConfig, SimConfig, density_from_name
 from sitl.env import Observation, SwarmEnv
@@ -355,39 +369,40 @@ def markdown_table(key_names: list[str], rows: list[tuple[list[str], dict | None
 
 def _add_common(parser: argparse.ArgumentParser) -> None:
     """Options shared by the single evaluation and ``paper``."""
-    parser.add_argument("--episodes", type=positive_int, default=None,
+    parser.add_argument("--episodes", type=int_range(1, MAX_EPISODES), default=None,
                         help="episodes per evaluation (default 100; 10 with --mavlink, which flies in real time)")
-    parser.add_argument("--seed", type=int, default=0,
+    parser.add_argument("--seed", type=int_range(0), default=0,
                         help=f"evaluation seed; the simulator uses {EVAL_SEED_OFFSET} + SEED, disjoint from training")
     parser.add_argument("--dynamics", choices=("kinematic", "jsbsim"), default="kinematic",
                         help="UAV dynamics (default kinematic)")
     parser.add_argument("--camera-noise", action=argparse.BooleanOptionalAction, default=False,
                         help="stereo depth noise and dropouts (default off: perfect depth)")
-    parser.add_argument("--max-steps", type=positive_int, default=400,
+    parser.add_argument("--max-steps", type=int_range(1, MAX_EPISODE_STEPS), default=400,
                         help="episode time limit in control steps (default 400 = 40 s)")
-    parser.add_argument("--batch", type=positive_int, default=100,
+    parser.add_argument("--batch", type=int_range(1, MAX_BATCH), default=100,
                         help="episodes flown at once as parallel worlds (default 100)")
-    parser.add_argument("--threads", type=positive_int, default=2, help="torch threads for the policy (default 2)")
+    parser.add_argument("--threads", type=int_range(1, MAX_THREADS), default=2, help="torch threads for the policy (default 2)")
     parser.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="python -m sitl.swarm_test", description=__doc__,
+    parser = ArgumentParser(prog="python -m sitl.swarm_test", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--policy", default=str(DEFAULT_POLICY),
                         help=f"policy file, or a reference: {', '.join(BASELINES)} (default {DEFAULT_POLICY})")
-    parser.add_argument("--n", type=positive_int, default=8, help="UAVs per world (default 8)")
+    parser.add_argument("--n", type=int_range(1, MAX_VEHICLES), default=8, help="UAVs per world (default 8)")
     parser.add_argument("--scenario", choices=SCENARIOS, default="circle", help="scenario (default circle)")
-    parser.add_argument("--density", default="medium",
+    parser.add_argument("--density", type=_density, default="medium",
                         help=f"random scenario density: {', '.join(DENSITIES)} or UAV/m^3 (default medium)")
-    parser.add_argument("--radius", type=positive_float, default=12.0, help="circle radius in m (default 12)")
+    parser.add_argument("--radius", type=float_range(0.0, MAX_RADIUS_M, low_open=True), default=12.0,
+                        help="circle radius in m (default 12)")
     _add_common(parser)
-    parser.add_argument("--out", type=Path, default=None,
+    parser.add_argument("--out", type=output_dir, default=None,
                         help="output folder (default runs/swarm_test/<method>-<scenario>-n<N>)")
-    parser.add_argument("--json", type=Path, default=None, help="also write the metrics JSON to this file")
+    parser.add_argument("--json", type=output_file_in_new_dir, default=None, help="also write the metrics JSON to this file")
     parser.add_argument("--no-reference", dest="reference", action="store_false",
                         help="do not fly the straight-to-goal reference beside the controller")
-    parser.add_argument("--plot-episodes", type=int, default=1,
+    parser.add_argument("--plot-episodes", type=int_range(0), default=1,
                         help="episodes to draw as trajectory figures (default 1; 0: none)")
     mav = parser.add_argument_group("the whole stack over MAVLink (--mavlink)")
     mav.add_argument("--mavlink", action="store_true",
@@ -426,8 +441,6 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                                  f"than 10 UAVs the default GCS port 14550 is inside the base range: e.g. "
                                  f"--gcs-port {free})")
         args.batch = max(args.batch, args.episodes)  # the in-process run then meets exactly the same episodes
-    if args.plot_episodes < 0:
-        parser.error(f"--plot-episodes must be >= 0, got {args.plot_episodes}")
     try:
         density = density_from_name(args.density)
         args.scenario_config = ScenarioConfig(name=args.scenario, density=density, circle_radius_m=args.radius)
@@ -435,6 +448,17 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         parser.error(str(err))
     args.parser = parser
     return args
+
+
+def _density(text: str) -> str:
+    """A density name or a finite number of UAV/m^3 > 0 (kept as text: reports name it as given)."""
+    try:
+        value = density_from_name(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"density must be a finite number of UAV/m^3, got {text!r}")
+    return text
 
 
 def _port(text: str) -> int:
@@ -494,7 +518,11 @@ def run_single(args: argparse.Namespace) -> int:
 
     default_name = f"{method.label}-{_scenario_tag(settings.scenario)}-n{settings.num_uavs}"
     out = args.out or Path("runs/swarm_test") / (default_name + ("-mavlink" if args.mavlink else ""))
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        print(f"error: cannot create the output folder {out}: {err.strerror}", file=sys.stderr)
+        return 2
     mavlink_info = None
     if args.mavlink:
         try:
@@ -528,9 +556,13 @@ def run_single(args: argparse.Namespace) -> int:
     if mavlink_info is not None:
         data["mavlink"] = mavlink_info
     metrics_path = out / "metrics.json"
-    _write_json(metrics_path, data)
-    if args.json:
-        _write_json(args.json, data)
+    try:
+        _write_json(metrics_path, data)
+        if args.json:
+            _write_json(args.json, data)
+    except OSError as err:  # e.g. the disk filled during the run
+        print(f"error: cannot write the metrics: {err}", file=sys.stderr)
+        return 1
 
     rows = [([r.method.label], r.summary) for r in results]
     print(f"\n{settings.describe()}, eval seed {settings.env_seed}")
@@ -620,40 +652,37 @@ def _int_list(text: str) -> list[int]:
         values = [int(v) for v in text.split(",") if v.strip()]
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
-    if not values or min(values) < 1:
-        raise argparse.ArgumentTypeError(f"expected integers >= 1, got {text!r}")
+    if not values or min(values) < 1 or max(values) > MAX_VEHICLES:
+        raise argparse.ArgumentTypeError(f"expected integers in 1..{MAX_VEHICLES}, got {text!r}")
     return values
 
 
 def _density_list(text: str) -> list[str]:
     names = [v.strip() for v in text.split(",") if v.strip()]
     for name in names:
-        try:
-            density_from_name(name)
-        except ValueError as err:
-            raise argparse.ArgumentTypeError(str(err)) from None
+        _density(name)
     if not names:
         raise argparse.ArgumentTypeError("expected at least one density")
     return names
 
 
 def parse_paper_args(argv: list[str] | None = None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(
+    parser = ArgumentParser(
         prog="python -m sitl.swarm_test paper",
         description="Reproduce the paper's Table II (random scenes x densities x methods) and Fig. 6 "
                     "(circle, success against N). One JSON per cell under OUT/cells; a cell already "
                     "computed with the same settings and policy file is skipped, so an interrupted run resumes.")
-    parser.add_argument("--out", type=Path, default=Path("runs/paper"), help="output folder (default runs/paper)")
+    parser.add_argument("--out", type=output_dir, default=Path("runs/paper"), help="output folder (default runs/paper)")
     parser.add_argument("--policies", default="",
                         help="METHOD=PATH,... for " + ", ".join(PAPER_METHODS) +
                              " (default models/policy_<method>.pt; a missing file is a 'not trained' row)")
-    parser.add_argument("--table-n", type=positive_int, default=8, help="UAVs in the Table II scenes (default 8)")
+    parser.add_argument("--table-n", type=int_range(1, MAX_VEHICLES), default=8, help="UAVs in the Table II scenes (default 8)")
     parser.add_argument("--densities", type=_density_list, default=list(DENSITIES),
                         help="Table II densities (default small,medium,large)")
     parser.add_argument("--ns", type=_int_list, default=list(DEFAULT_FIG6_NS),
                         help="Fig. 6 swarm sizes (default " + ",".join(map(str, DEFAULT_FIG6_NS)) + ")")
-    parser.add_argument("--radius", type=positive_float, default=12.0, help="Fig. 6 circle radius in m (default 12)")
-    parser.add_argument("--table-episodes", type=positive_int, default=None,
+    parser.add_argument("--radius", type=float_range(0.0, MAX_RADIUS_M, low_open=True), default=12.0, help="Fig. 6 circle radius in m (default 12)")
+    parser.add_argument("--table-episodes", type=int_range(1, MAX_EPISODES), default=None,
                         help="episodes per Table II cell (default 500: random-scene success differs between "
                              "methods by a few points, which 100 episodes cannot resolve; cells are cheap)")
     _add_common(parser)
@@ -811,7 +840,7 @@ def paper_main(argv: list[str] | None = None) -> int:
             print(f"{method}: {path} not found, reported as 'not trained'", file=sys.stderr)
     try:
         result = run_paper(args.out, table, fig6, args.progress, args.policy_paths)
-    except EvaluationError as err:
+    except (EvaluationError, OSError) as err:  # OSError: the output folder became unwritable
         print(f"error: {err}", file=sys.stderr)
         return 2
     counts = {k: list(result["status"].values()).count(k) for k in ("computed", "stored", "not trained")}

@@ -25,6 +25,7 @@ import dataclasses
 import json
 import math
 import os
+import pickle
 import shutil
 import sys
 import time
@@ -36,6 +37,7 @@ import numpy as np
 import torch
 
 from companion.spec import DEFAULT_ACTION_SPEC, CameraSpec
+from sitl.cli_args import MAX_THREADS, ArgumentParser, finite_float, integer
 from sitl.config import TRAINING_SCENARIOS, RewardConfig, ScenarioConfig, SimConfig, density_from_name
 from sitl.env import SwarmEnv
 from sitl.metrics import summarize
@@ -102,13 +104,28 @@ class TrainConfig:
             raise ValueError(f"unknown scenario {self.scenario!r}; choose one of {', '.join(TRAINING_SCENARIOS)}")
         if not 0.0 <= self.circle_fraction <= 1.0:
             raise ValueError(f"circle_fraction must be in [0, 1], got {self.circle_fraction}")
-        density_from_name(self.density)
-        for name in ("num_uavs", "num_worlds", "image_size", "max_episode_steps", "batch_size", "replay_capacity",
-                     "threads"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if not self.arrival_radius_m > 0:
-            raise ValueError(f"arrival_radius_m must be > 0, got {self.arrival_radius_m}")
+        if not math.isfinite(density_from_name(self.density)):
+            raise ValueError(f"density must be a finite number of UAV/m^3, got {self.density!r}")
+        # Integer ranges: the upper ends keep a typo from allocating (or promising) the impossible.
+        for name, low, high in TRAIN_INT_RANGES:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+                raise ValueError(f"{name} must be an integer in {low}..{high}, got {value!r}")
+        # Float ranges written so that NaN fails them too.
+        if not 0.0 < self.arrival_radius_m <= 100.0:
+            raise ValueError(f"arrival_radius_m must be in (0, 100], got {self.arrival_radius_m}")
+        if not 0.0 < self.circle_radius_m <= 10_000.0:
+            raise ValueError(f"circle_radius_m must be in (0, 10000], got {self.circle_radius_m}")
+        if not 0.0 <= self.yaw_jitter_deg <= 180.0:
+            raise ValueError(f"yaw_jitter_deg must be in [0, 180], got {self.yaw_jitter_deg}")
+        if not 0.0 <= self.updates_per_env_step <= 10_000.0:
+            raise ValueError(f"updates_per_env_step must be in [0, 10000], got {self.updates_per_env_step}")
+        if not 0.0 < self.checkpoint_every_s < math.inf:
+            raise ValueError(f"checkpoint_every_s must be a finite number > 0, got {self.checkpoint_every_s}")
+        try:
+            torch.device(self.device)
+        except RuntimeError:
+            raise ValueError(f"unknown torch device {self.device!r}; use cpu or cuda") from None
         if self.image_size < 16:
             raise ValueError(f"image_size must be >= 16 (the encoder shrinks it by 14 pixels), got {self.image_size}")
         if self.max_episodes <= 0 and self.total_updates <= 0:
@@ -118,6 +135,15 @@ class TrainConfig:
         if self.device.startswith("cuda") and not torch.cuda.is_available():
             raise ValueError("--device cuda asked for, but torch sees no CUDA device")
 
+
+#: (field, lowest, highest) of TrainConfig's integers.
+TRAIN_INT_RANGES = (
+    ("num_uavs", 1, 1000), ("num_worlds", 1, 1000), ("image_size", 1, 256), ("max_episode_steps", 1, 100_000),
+    ("batch_size", 1, 100_000), ("replay_capacity", 1, 10_000_000), ("max_episodes", 0, 10**9),
+    ("total_updates", 0, 10**9), ("updates_per_episode", 0, 1_000_000), ("init_steps", 0, 10**9),
+    ("eval_every_updates", 0, 10**9), ("eval_episodes", 1, 1_000_000), ("final_eval_episodes", 0, 1_000_000),
+    ("seed", 0, 2**32 - 1), ("threads", 1, MAX_THREADS), ("vae_images", 1, 10_000_000), ("vae_epochs", 1, 100_000),
+)
 
 #: Each preset sets training and agent fields; explicit flags override it. The dataclass
 #: defaults are the fast preset's training values and the paper's agent values.
@@ -143,9 +169,9 @@ def _add_dataclass_flags(parser: argparse.ArgumentParser, cls, title: str) -> No
         if any(a.dest == f.name for a in parser._actions):
             continue  # e.g. method: one flag sets both configs
         flag = "--" + f.name.replace("_", "-")
-        kind = type(f.default)
+        kind = {float: finite_float, int: integer}.get(type(f.default), type(f.default))
         help_text = f.metadata.get("help", "") + f" (default: {f.default})"
-        if kind is bool:
+        if type(f.default) is bool:
             group.add_argument(flag, dest=f.name, action=argparse.BooleanOptionalAction, default=argparse.SUPPRESS,
                                help=help_text)
         else:
@@ -154,7 +180,7 @@ def _add_dataclass_flags(parser: argparse.ArgumentParser, cls, title: str) -> No
 
 def parse_args(argv: list[str] | None = None) -> tuple[TrainConfig, AgentConfig, str | None]:
     """Build the two configs: defaults, then the preset, then explicit flags."""
-    parser = argparse.ArgumentParser(prog="python -m sitl.train", description=__doc__,
+    parser = ArgumentParser(prog="python -m sitl.train", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--resume", metavar="RUN_DIR", default=None, help="continue the run in RUN_DIR from its checkpoint")
     _add_dataclass_flags(parser, TrainConfig, "training")
@@ -368,7 +394,12 @@ class Trainer:
         #: counters of the run this one started from (``init_from``), for the provenance
         self.initial_stage: dict = {}
         if resume:
-            self._restore(torch.load(run_dir / "checkpoint.pt", weights_only=False))
+            try:
+                ckpt = torch.load(run_dir / "checkpoint.pt", weights_only=False)
+            except (OSError, RuntimeError, EOFError, pickle.UnpicklingError) as err:
+                raise ValueError(f"cannot resume: {run_dir / 'checkpoint.pt'} is not a readable checkpoint "
+                                 f"({str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__})") from None
+            self._restore(ckpt)
         elif cfg.init_from:
             self._init_from(Path(cfg.init_from))
 
@@ -643,18 +674,26 @@ def main(argv: list[str] | None = None) -> int:
         if not (run_dir / "checkpoint.pt").is_file():
             print(f"error: {run_dir} has no checkpoint.pt to resume from", file=sys.stderr)
             return 2
-        saved = json.loads((run_dir / "config.json").read_text())
-        cfg, agent_cfg = TrainConfig(**saved["train"]), AgentConfig(**saved["agent"])
+        try:
+            saved = json.loads((run_dir / "config.json").read_text())
+            cfg, agent_cfg = TrainConfig(**saved["train"]), AgentConfig(**saved["agent"])
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            print(f"error: cannot resume {run_dir}: its config.json is missing or invalid ({err})", file=sys.stderr)
+            return 2
     else:
         run_dir = Path(cfg.run_dir) if cfg.run_dir else default_run_dir(cfg)
-        if run_dir.exists() and any(run_dir.iterdir()):
+        if run_dir.exists() and (not run_dir.is_dir() or any(run_dir.iterdir())):
             print(f"error: run directory {run_dir} already exists and is not empty; "
                   f"use --resume {run_dir} to continue it or choose another --run-dir", file=sys.stderr)
             return 2
-        run_dir.mkdir(parents=True, exist_ok=True)
-        cfg = replace(cfg, run_dir=str(run_dir))
-        (run_dir / "config.json").write_text(json.dumps(
-            {"train": dataclasses.asdict(cfg), "agent": dataclasses.asdict(agent_cfg)}, indent=2))
+        try:
+            run_dir.mkdir(parents=True, exist_ok=True)
+            cfg = replace(cfg, run_dir=str(run_dir))
+            (run_dir / "config.json").write_text(json.dumps(
+                {"train": dataclasses.asdict(cfg), "agent": dataclasses.asdict(agent_cfg)}, indent=2))
+        except OSError as err:
+            print(f"error: cannot create the run directory {run_dir}: {err.strerror}", file=sys.stderr)
+            return 2
     try:
         trainer = Trainer(cfg, agent_cfg, run_dir, resume=bool(resume))
     except (FileNotFoundError, ValueError) as err:

@@ -35,13 +35,25 @@ import numpy as np
 from companion.flight_modes import AutopilotKind
 from companion.spec import CameraSpec
 from sitl.cli_args import (
+    ArgumentParser,
+    MAX_CAMERA_HZ,
+    MAX_SUPERSAMPLE,
+    MAX_VEHICLES,
+    box,
     check_camera,
+    check_port_block,
+    cylinder,
     cylinder_rows,
+    finite_float,
     finite_floats,
+    float_range,
+    host,
     image_size,
+    int_range,
+    output_file,
     positive_float,
-    positive_int,
     udp_port,
+    udp_port_nonzero,
 )
 from sitl.camera import LANDED_CAMERA_HEIGHT_M, DepthCamera
 from sitl.collision import uav_uav_collisions
@@ -193,8 +205,8 @@ def run(world: SimWorld, duration_s: float | None, camera_hz: float, trace=None,
         if now >= next_camera:
             world.render_and_send()
             next_camera += camera_period
-            while next_camera <= now:  # fell behind: skip frames but keep the camera's time grid
-                next_camera += camera_period
+            if next_camera <= now:  # fell behind: skip frames but keep the camera's time grid
+                next_camera += math.ceil((now - next_camera) / camera_period + 1e-9) * camera_period
         for i, ap in enumerate(world.autopilots):
             ap.send_telemetry(now, world.body(i))
         if now >= next_status:
@@ -228,42 +240,48 @@ def _read_starts(path: Path, n: int, airborne: bool) -> tuple[np.ndarray, np.nda
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="python -m sitl.vehicle", description=__doc__,
+    parser = ArgumentParser(prog="python -m sitl.vehicle", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--n", type=positive_int, default=1, help="number of vehicles (default 1)")
+    parser.add_argument("--n", type=int_range(1, MAX_VEHICLES), default=1,
+                        help=f"number of vehicles, 1..{MAX_VEHICLES} (system ids 1..N; default 1)")
     parser.add_argument("--autopilot", choices=[k.value for k in AutopilotKind], default="px4",
                         help="behave like PX4 (default) or ArduCopter")
-    parser.add_argument("--host", default="127.0.0.1", help="address of the companions and ground station (default 127.0.0.1)")
-    parser.add_argument("--base-port", type=udp_port, default=14540, help="companion i listens on base-port + i (default 14540)")
-    parser.add_argument("--depth-port", type=udp_port, default=14640, help="depth frames of vehicle i go to depth-port + i (default 14640)")
+    parser.add_argument("--host", type=host, default="127.0.0.1", help="address of the companions and ground station (default 127.0.0.1)")
+    parser.add_argument("--base-port", type=udp_port_nonzero, default=14540, help="companion i listens on base-port + i (default 14540)")
+    parser.add_argument("--depth-port", type=udp_port_nonzero, default=14640, help="depth frames of vehicle i go to depth-port + i (default 14640)")
     parser.add_argument("--gcs-port", type=udp_port, default=14550, help="ground-station port, 0 for none (default 14550)")
     parser.add_argument("--start", type=finite_floats((3,), "--start"), default=[0.0, 0.0, 0.0], metavar="N,E,D",
                         help="start of vehicle 0 in local NED metres (default 0,0,0: on the ground at home)")
-    parser.add_argument("--spacing", type=float, default=3.0, help="vehicle i starts i * spacing metres east of vehicle 0")
-    parser.add_argument("--yaw-deg", type=float, default=0.0, help="initial heading in degrees from north (default 0)")
+    parser.add_argument("--spacing", type=finite_float, default=3.0, help="vehicle i starts i * spacing metres east of vehicle 0")
+    parser.add_argument("--yaw-deg", type=finite_float, default=0.0, help="initial heading in degrees from north (default 0)")
     parser.add_argument("--starts", metavar="FILE",
                         help="JSON list of {\"ned\": [N, E, D], \"yaw_deg\": Y}, one per vehicle: overrides "
                              "--start, --spacing and --yaw-deg")
     parser.add_argument("--airborne", action="store_true", help="start armed and hovering at --start (needs D < -0.5)")
     parser.add_argument("--dynamics", choices=DYNAMICS_NAMES, default="kinematic")
-    parser.add_argument("--camera-hz", type=positive_float, default=30.0,
-                        help="depth frame rate (default 30; use a multiple of the policy's control rate)")
+    parser.add_argument("--camera-hz", type=float_range(0.0, MAX_CAMERA_HZ, low_open=True), default=30.0,
+                        help=f"depth frame rate, up to {MAX_CAMERA_HZ:g} (default 30; use a multiple of the policy's "
+                             "control rate)")
     parser.add_argument("--camera-size", type=image_size, default=(32, 32), metavar="WxH", help="rendered resolution (default 32x32)")
-    parser.add_argument("--hfov", type=float, default=90.0, help="horizontal field of view in degrees (default 90)")
+    parser.add_argument("--hfov", type=finite_float, default=90.0, help="horizontal field of view in degrees (default 90)")
     parser.add_argument("--max-range", type=positive_float, default=20.0, help="camera range in metres (default 20)")
-    parser.add_argument("--supersample", type=positive_int, default=4, help="sub-rays per pixel side (default 4)")
-    parser.add_argument("--cylinder", type=finite_floats((3, 4), "--cylinder"), action="append", metavar="N,E,R[,H]",
+    parser.add_argument("--supersample", type=int_range(1, MAX_SUPERSAMPLE), default=4,
+                        help=f"sub-rays per pixel side, 1..{MAX_SUPERSAMPLE} (default 4)")
+    parser.add_argument("--cylinder", type=cylinder, action="append", metavar="N,E,R[,H]",
                         help="a vertical pole at N,E of radius R (and height H, default 30 m); repeatable")
-    parser.add_argument("--box", type=finite_floats((6,), "--box"), action="append", metavar="N,E,D,HN,HE,HD",
+    parser.add_argument("--box", type=box, action="append", metavar="N,E,D,HN,HE,HD",
                         help="an axis-aligned box: centre and half sizes in NED metres; repeatable")
     parser.add_argument("--signing-key", metavar="FILE", help="MAVLink 2 signing key: sign all, refuse unsigned")
     parser.add_argument("--odometry-child-frame", choices=("local_ned", "body_frd"), default="local_ned",
                         help="ODOMETRY velocity frame: local_ned as PX4 1.14+, body_frd as PX4 up to 1.13")
-    parser.add_argument("--log", default="-", metavar="PATH", help="JSON-lines event log (default '-': stdout)")
+    parser.add_argument("--log", type=output_file, default="-", metavar="PATH",
+                        help="JSON-lines event log (default '-': stdout)")
     parser.add_argument("--duration", type=positive_float, metavar="S", help="stop after S seconds")
-    parser.add_argument("--trace", metavar="PATH",
+    parser.add_argument("--trace", type=output_file, metavar="PATH",
                         help="write every vehicle's true position, airborne and crashed flags as JSON lines at 10 Hz")
     args = parser.parse_args(argv)
+    check_port_block(parser, "--base-port", args.base_port, args.n)
+    check_port_block(parser, "--depth-port", args.depth_port, args.n)
     if args.starts is not None:
         try:
             args.starts = _read_starts(Path(args.starts), args.n, args.airborne)

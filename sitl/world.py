@@ -55,14 +55,25 @@ from companion.flight_modes import MAV_AUTOPILOT_INVALID, AutopilotKind  # noqa:
 from companion.mavlink_link import normalize_connection  # noqa: E402
 from companion.spec import CameraSpec  # noqa: E402
 from sitl.camera import LANDED_CAMERA_HEIGHT_M, DepthCamera  # noqa: E402
-from sitl.cli_args import (  # noqa: E402
+from sitl.cli_args import (
+    ArgumentParser,  # noqa: E402
+    MAX_CAMERA_HZ,
+    MAX_SUPERSAMPLE,
+    box,
     check_camera,
+    check_port_block,
+    cylinder,
     cylinder_rows,
+    finite_float,
     finite_floats,
+    float_range,
+    host,
     image_size,
+    int_range,
+    output_file,
     positive_float,
     positive_int,
-    udp_port,
+    udp_port_nonzero,
 )
 from sitl.depth_transport import DepthFrameSender  # noqa: E402
 from sitl.event_log import EventLog  # noqa: E402
@@ -558,9 +569,10 @@ def run(world: DepthWorld, duration_s: float | None, camera_hz: float) -> None:
         if now >= next_camera:
             world.render_and_send(now)
             next_camera += camera_period
-            while next_camera <= now:  # fell behind: skip frames but keep the camera's time grid
-                next_camera += camera_period
-                world.skipped_frames += 1
+            if next_camera <= now:  # fell behind: skip frames but keep the camera's time grid
+                skipped = math.ceil((now - next_camera) / camera_period + 1e-9)
+                next_camera += skipped * camera_period
+                world.skipped_frames += skipped
         if now >= next_status:
             world.status(now)
             next_status += 1.0
@@ -590,7 +602,7 @@ def _offsets(args: argparse.Namespace, n: int, parser: argparse.ArgumentParser) 
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="python -m sitl.world", description=__doc__,
+    parser = ArgumentParser(prog="python -m sitl.world", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--px4", type=positive_int, metavar="N",
@@ -600,12 +612,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         help="one vehicle's MAVLink connection, repeatable (vehicle i is the i-th): tcp:HOST:PORT "
                              "(ArduPilot SITL -I i: tcp:127.0.0.1:5760+10i), udpin:HOST:PORT, udpout:HOST:PORT, "
                              "udp:PORT or a serial device")
-    parser.add_argument("--px4-first-instance", type=int, default=0, metavar="K",
+    parser.add_argument("--px4-first-instance", type=int_range(0, 254), default=0, metavar="K",
                         help="with --px4: the instances are K .. K+N-1 (default 0; PX4's gazebo-classic "
                              "sitl_multiple_run.sh starts at 1)")
-    parser.add_argument("--gcs-port", type=udp_port, default=14550,
+    parser.add_argument("--gcs-port", type=udp_port_nonzero, default=14550,
                         help="with --px4: the UDP port the instances send their ground-station link to (default 14550)")
-    parser.add_argument("--gcs-host", default="0.0.0.0", help="with --px4: the address to listen on (default 0.0.0.0)")
+    parser.add_argument("--gcs-host", type=host, default="0.0.0.0", help="with --px4: the address to listen on (default 0.0.0.0)")
     layout = parser.add_mutually_exclusive_group()
     layout.add_argument("--spawn-offsets", metavar="N,E,D;N,E,D;...",
                         help="each vehicle's local origin (spawn point) in the world frame, metres, one per vehicle "
@@ -613,27 +625,29 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     layout.add_argument("--offset-line", type=finite_floats((2,), "--offset-line"), metavar="BEARING,DIST",
                         help="vehicle i's origin i*DIST m from vehicle 0's towards BEARING degrees (ArduPilot's "
                              "sim_vehicle.py --auto-offset-line; PX4's gazebo-classic sitl_multiple_run.sh: 0,3)")
-    layout.add_argument("--spacing", type=float, metavar="M",
+    layout.add_argument("--spacing", type=finite_float, metavar="M",
                         help="vehicle i's origin i*M m east of vehicle 0's (the same as --offset-line 90,M)")
-    parser.add_argument("--host", default="127.0.0.1", help="where the companions listen for depth (default 127.0.0.1)")
-    parser.add_argument("--depth-port", type=udp_port, default=14640,
+    parser.add_argument("--host", type=host, default="127.0.0.1", help="where the companions listen for depth (default 127.0.0.1)")
+    parser.add_argument("--depth-port", type=udp_port_nonzero, default=14640,
                         help="vehicle i's frames go to depth-port + i; with --px4, i is the instance (default 14640)")
-    parser.add_argument("--camera-hz", type=positive_float, default=30.0,
-                        help="depth frame rate (default 30; use a multiple of the policy's control rate)")
+    parser.add_argument("--camera-hz", type=float_range(0.0, MAX_CAMERA_HZ, low_open=True), default=30.0,
+                        help=f"depth frame rate, up to {MAX_CAMERA_HZ:g} (default 30; use a multiple of the policy's "
+                             "control rate)")
     parser.add_argument("--camera-size", type=image_size, default=(32, 32), metavar="WxH",
                         help="rendered resolution (default 32x32)")
-    parser.add_argument("--hfov", type=float, default=90.0, help="horizontal field of view in degrees (default 90)")
+    parser.add_argument("--hfov", type=finite_float, default=90.0, help="horizontal field of view in degrees (default 90)")
     parser.add_argument("--max-range", type=positive_float, default=20.0, help="camera range in metres (default 20)")
-    parser.add_argument("--supersample", type=positive_int, default=4, help="sub-rays per pixel side (default 4)")
-    parser.add_argument("--cylinder", type=finite_floats((3, 4), "--cylinder"), action="append", metavar="N,E,R[,H]",
+    parser.add_argument("--supersample", type=int_range(1, MAX_SUPERSAMPLE), default=4,
+                        help=f"sub-rays per pixel side, 1..{MAX_SUPERSAMPLE} (default 4)")
+    parser.add_argument("--cylinder", type=cylinder, action="append", metavar="N,E,R[,H]",
                         help="a vertical pole at N,E (world frame) of radius R (and height H, default 30 m); repeatable")
-    parser.add_argument("--box", type=finite_floats((6,), "--box"), action="append", metavar="N,E,D,HN,HE,HD",
+    parser.add_argument("--box", type=box, action="append", metavar="N,E,D,HN,HE,HD",
                         help="an axis-aligned box: centre and half sizes in world NED metres; repeatable")
-    parser.add_argument("--stream-rate", type=positive_float, default=50.0,
+    parser.add_argument("--stream-rate", type=float_range(0.0, 1000.0, low_open=True), default=50.0,
                         help="LOCAL_POSITION_NED and ATTITUDE rate asked of each autopilot (default 50 Hz)")
-    parser.add_argument("--sysid", type=int, default=250,
+    parser.add_argument("--sysid", type=int_range(1, 255), default=250,
                         help="this ground station's MAVLink system id (default 250; QGroundControl uses 255)")
-    parser.add_argument("--log", default="-", metavar="PATH", help="JSON-lines event log (default '-': stdout)")
+    parser.add_argument("--log", type=output_file, default="-", metavar="PATH", help="JSON-lines event log (default '-': stdout)")
     parser.add_argument("--duration", type=positive_float, metavar="S", help="stop after S seconds")
     args = parser.parse_args(argv)
 
@@ -649,8 +663,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     first = args.px4_first_instance if args.px4 else 0
     if args.px4 and not (0 <= first and first + n <= 255):
         parser.error(f"--px4 {n} from instance {first} needs system ids {first + 1}..{first + n}, beyond MAVLink's 1..255")
-    if args.depth_port + first + n - 1 > 65535:
-        parser.error(f"--depth-port {args.depth_port}: the ports of {n} vehicles would pass 65535")
+    check_port_block(parser, "--depth-port", args.depth_port + first, n)
     if not 1 <= args.sysid <= 255:
         parser.error(f"--sysid must be in 1..255, got {args.sysid}")
     if args.spacing is not None and not math.isfinite(args.spacing):

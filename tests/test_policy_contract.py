@@ -98,3 +98,140 @@ def test_metadata_and_behaviour_are_checked(tmp_path):
     torch.jit.save(torch.jit.script(_Const(0.0)), str(broken_json), _extra_files={"policy.json": "{oops"})
     with pytest.raises(PolicyFileError, match="not valid JSON"):
         load_policy(broken_json)
+
+
+# --------------------------------------------------------------------------- hostile policy.json (issue 16: 6, 8, 9)
+
+
+class _Width(torch.nn.Module):
+    """Returns ``width`` zeros per row: a model whose output is not the 3 actions."""
+
+    def __init__(self, width: int) -> None:
+        super().__init__()
+        self.width = width
+
+    def forward(self, depth: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+        return torch.zeros((depth.shape[0], self.width))
+
+
+def _write_raw(path, metadata, module: torch.nn.Module | None = None):
+    """Save ``module`` with ``metadata`` as policy.json *without* the exporter's checks (a hostile file)."""
+    text = metadata if isinstance(metadata, str) else json.dumps(metadata)  # allow_nan: writes Infinity/NaN
+    torch.jit.save(torch.jit.script(module or _Const(0.0)), str(path), _extra_files={"policy.json": text})
+    return path
+
+
+def _meta(**changes) -> dict:
+    """A valid policy.json with ``changes`` applied; keys like ``depth.hfov_deg`` reach into a sub-object."""
+    meta = json.loads(json.dumps(build_metadata(CAMERA, DEFAULT_ACTION_SPEC, 0.1, {})))
+    for key, value in changes.items():
+        target, _, leaf = key.rpartition(".")
+        (meta[target] if target else meta)[leaf] = value
+    return meta
+
+
+INF = float("inf")
+HOSTILE = {
+    # 6: bounds and names checked against companion.spec (the paper's box is the widest allowed)
+    "bounds_inf": (_meta(**{"action.low": [-INF] * 3, "action.high": [INF] * 3}), "action low[0] must be finite"),
+    "bounds_100": (_meta(**{"action.low": [-100.0] * 3, "action.high": [100.0] * 3}),
+                   "vel_fwd_m_s bounds [-100, 100] exceed the onboard limits [0, 2]"),
+    "fwd_too_fast": (_meta(**{"action.high": [50.0, 0.5, 0.5]}), "vel_fwd_m_s bounds [0, 50] exceed"),
+    "yaw_too_fast": (_meta(**{"action.low": [0.0, -0.5, -5.0]}), "yaw_rate_rad_s bounds [-5, 0.5] exceed"),
+    "bounds_nan": (_meta(**{"action.high": [2.0, float("nan"), 0.5]}), "action high[1] must be finite"),
+    "low_not_below_high": (_meta(**{"action.low": [0.0, 0.2, -0.5], "action.high": [2.0, 0.2, 0.5]}),
+                           "vel_down_m_s: low 0.2 must be below high 0.2"),
+    "bounds_strings": (_meta(**{"action.low": ["0", "-0.5", "-0.5"]}), "action low[0] must be a number"),
+    "bounds_two": (_meta(**{"action.high": [2.0, 0.5]}), "action high must be a list of 3 numbers"),
+    "bounds_null": (_meta(**{"action.low": None}), "action low must be a list of 3 numbers"),
+    "names_swapped": (_meta(**{"action.names": ["vel_down_m_s", "vel_fwd_m_s", "yaw_rate_rad_s"]}), "action names"),
+    "names_missing": (_meta(action={"low": [0, -0.5, -0.5], "high": [2, 0.5, 0.5]}), "action names None differ"),
+    "action_string": (_meta(action="fast"), "action must be a JSON object"),
+    # 8: control period in a sane range
+    "period_inf": (_meta(control_period_s=INF), "control_period_s must be in 0.02..1 s, file says inf"),
+    "period_tiny": (_meta(control_period_s=1e-4), "control_period_s must be in 0.02..1 s, file says 0.0001"),
+    "period_zero": (_meta(control_period_s=0), "control_period_s must be in 0.02..1 s"),
+    "period_negative": (_meta(control_period_s=-0.1), "control_period_s must be in 0.02..1 s"),
+    "period_nan": (_meta(control_period_s=float("nan")), "control_period_s must be in 0.02..1 s"),
+    "period_huge_int": (_meta(control_period_s=10 ** 400), "control_period_s must be in 0.02..1 s, file says inf"),
+    # 9: every field type-checked before use
+    "period_string": (_meta(control_period_s="abc"), "control_period_s must be a number of seconds, file says 'abc'"),
+    "period_null": (_meta(control_period_s=None), "control_period_s must be a number of seconds"),
+    "period_bool": (_meta(control_period_s=True), "control_period_s must be a number of seconds"),
+    "hfov_null": (_meta(**{"depth.hfov_deg": None}), "depth hfov_deg must be a number, file says None"),
+    "hfov_string": (_meta(**{"depth.hfov_deg": "90"}), "depth hfov_deg must be a number"),
+    "hfov_180": (_meta(**{"depth.hfov_deg": 180.0}), "hfov_deg must be in [1, 179)"),
+    "range_inf": (_meta(**{"depth.max_range_m": INF}), "depth max_range_m must be finite"),
+    "range_negative": (_meta(**{"depth.max_range_m": -1.0}), "depth max_range_m must be in (0, 1000] m"),
+    "width_fraction": (_meta(**{"depth.width": 16.5}), "depth width must be an integer"),
+    "width_string": (_meta(**{"depth.width": "16"}), "depth width must be an integer"),
+    "width_huge": (_meta(**{"depth.width": 10 ** 9}), "depth width must be in 1..1024"),
+    "height_zero": (_meta(**{"depth.height": 0}), "depth height must be in 1..1024"),
+    "frames_bool": (_meta(**{"depth.frames": True}), "depth frames must be an integer"),
+    "depth_string": (_meta(depth="32x32"), "depth must be a JSON object, file says '32x32'"),
+    "depth_order": (_meta(**{"depth.order": "newest_first"}), "ordered oldest_first"),
+    "units_mm": (_meta(**{"depth.units": "mm"}), "depth must be planar metres"),
+    "state_null": (_meta(state_names=None), "state layout None differs"),
+    "version_bool": (_meta(format_version=True), "unsupported policy format_version True"),
+    "provenance_string": (_meta(provenance="me"), "provenance must be a JSON object"),
+    "body_frame_number": (_meta(body_frame=3), "body_frame must be a string"),
+    "not_an_object": ("[1, 2, 3]", "policy.json is not a JSON object"),
+}
+
+
+@pytest.mark.parametrize("case", list(HOSTILE))
+def test_hostile_metadata_is_refused_with_its_reason(case, tmp_path):
+    metadata, reason = HOSTILE[case]
+    path = _write_raw(tmp_path / f"{case}.pt", metadata)
+    with pytest.raises(PolicyFileError) as caught:
+        load_policy(path)
+    assert reason in str(caught.value)
+    assert "\n" not in str(caught.value)
+    with pytest.raises(PolicyFileError):  # the metadata is checked even without the forward check
+        load_policy(path, check_forward=False)
+
+
+@pytest.mark.parametrize("width", [1, 4])
+def test_a_model_output_that_is_not_three_actions_is_refused_at_load(width, tmp_path):
+    path = _write_raw(tmp_path / "wide.pt", _meta(), _Width(width))
+    with pytest.raises(PolicyFileError, match=rf"policy output has shape \[1, {width}\], expected \[1, 3\]"):
+        load_policy(path)
+
+
+def test_a_narrower_action_box_and_the_period_limits_are_accepted(tmp_path):
+    narrow = _meta(**{"action.low": [0.0, -0.2, -0.3], "action.high": [1.0, 0.2, 0.3]}, control_period_s=0.02)
+    policy = load_policy(_write_raw(tmp_path / "narrow.pt", narrow, _Const(0.1)))
+    assert policy.action.low == (0.0, -0.2, -0.3) and policy.action.high == (1.0, 0.2, 0.3)
+    assert policy.control_period_s == 0.02
+    slow = load_policy(_write_raw(tmp_path / "slow.pt", _meta(control_period_s=1), _Const(0.0)))
+    assert slow.control_period_s == 1.0 and isinstance(slow.control_period_s, float)
+
+
+def test_the_companion_exits_3_with_the_reason_for_hostile_files(tmp_path):
+    """The real ``companion`` process: exit 3, the reason in its log, no traceback (a few cases, run in parallel)."""
+    import subprocess
+    import sys
+
+    from tests.companion_helpers import REPO, env
+
+    cases = {
+        "bounds_inf": (HOSTILE["bounds_inf"][0], None, "action low[0] must be finite"),
+        "period_inf": (HOSTILE["period_inf"][0], None, "control_period_s must be in 0.02..1 s"),
+        "hfov_null": (HOSTILE["hfov_null"][0], None, "depth hfov_deg must be a number"),
+        "four_outputs": (_meta(), _Width(4), "policy output has shape [1, 4], expected [1, 3]"),
+    }
+    procs = {}
+    for name, (metadata, module, _) in cases.items():
+        model = _write_raw(tmp_path / f"{name}.pt", metadata, module)
+        procs[name] = subprocess.Popen(
+            [sys.executable, "-m", "companion.cli", "--connect", "udp:127.0.0.1:9", "--model", str(model),
+             "--camera", "sitl:9"], cwd=REPO, env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    for name, proc in procs.items():
+        try:
+            out, err = proc.communicate(timeout=60)
+        finally:
+            proc.kill()
+        assert proc.returncode == 3, (name, out, err)
+        assert "Traceback" not in out + err
+        exit_event = [json.loads(line) for line in out.splitlines() if '"exit"' in line][-1]
+        assert cases[name][2] in exit_event["reason"], (name, exit_event)

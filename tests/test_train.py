@@ -43,6 +43,43 @@ def test_buffer_rebuilds_stacks_from_frames_stored_once():
     assert buf._next_frame == 10
 
 
+def test_a_checkpoint_holds_only_the_filled_part_of_a_big_buffer_and_resumes(tmp_path):
+    """Issue 16: capacity 200,000 holding 176 transitions wrote 905 MB; now the checkpoint is the 176 transitions."""
+    def make():
+        return FrameReplayBuffer(capacity=200_000, num_agents=8, frames=3, height=32, width=32, state_dim=6,
+                                 action_dim=3, seed=3)
+
+    rng = np.random.default_rng(0)
+    agents = np.arange(8)
+    buf = make()
+    assert buf.nbytes > 800 * 2**20  # preallocated (lazily: untouched pages cost no memory)
+    buf.start_episodes(agents, rng.uniform(0, 20, (8, 32, 32)).astype(np.float32))
+    for t in range(22):  # 22 steps x 8 agents = 176 transitions
+        buf.add(agents, rng.normal(size=(8, 6)), rng.normal(size=(8, 3)), rng.normal(size=8),
+                rng.uniform(0, 20, (8, 32, 32)).astype(np.float32), rng.normal(size=(8, 6)), np.array([t == 21] * 8))
+    assert buf.size == 176
+    path = tmp_path / "buffer.pt"
+    torch.save(buf.state_dict(), path)
+    assert path.stat().st_size < 2 * 2**20, path.stat().st_size  # 184 frames of 2 KiB + rows: < 1 MiB
+
+    restored = make()
+    restored.load_state_dict(torch.load(path, weights_only=False))
+    assert restored.size == 176 and restored._next_frame == buf._next_frame
+    a = buf.sample(64, torch.device("cpu"), n_step=5)
+    b = restored.sample(64, torch.device("cpu"), n_step=5)
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+    # It keeps filling where the saved one left off, links between transitions included.
+    for target in (buf, restored):
+        target.start_episodes(agents, np.ones((8, 32, 32), np.float32))
+        target.add(agents, np.zeros((8, 6)), np.zeros((8, 3)), np.ones(8), np.ones((8, 32, 32), np.float32),
+                   np.zeros((8, 6)), np.zeros(8, bool))
+    for name in ("frame_index", "state", "reward", "stamp", "successor", "successor_stamp", "frame_store"):
+        assert np.array_equal(getattr(buf, name)[:400], getattr(restored, name)[:400]), name
+    with pytest.raises(ValueError, match="capacity"):
+        FrameReplayBuffer(1000, 8, 3, 32, 32, 6, 3).load_state_dict(buf.state_dict())
+
+
 def test_buffer_memory_is_small_for_the_default_run():
     buf = FrameReplayBuffer(20_000, 128, 3, 32, 32, 6, 3)
     assert buf.nbytes < 90 * 2**20
@@ -112,10 +149,10 @@ def _env():
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--num-uavs", "0"], "num_uavs must be >= 1"),
+    (["--num-uavs", "0"], "num_uavs must be an integer in 1..1000, got 0"),
     (["--method", "ppo"], "unknown method 'ppo'"),
     (["--density", "-2"], "density must be > 0"),
-    (["--batch-size", "many"], "invalid int value"),
+    (["--batch-size", "many"], "argument --batch-size: expected an integer, got 'many'"),
 ])
 def test_bad_command_line_values(tmp_path, args, message):
     out = subprocess.run([sys.executable, "-m", "sitl.train", "--run-dir", str(tmp_path / "r"), *args],

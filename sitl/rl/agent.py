@@ -18,6 +18,7 @@ The update follows the equations: :meth:`SacAeAgent.update_critic` (eqs. 5-6),
 from __future__ import annotations
 
 import copy
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -63,6 +64,30 @@ class AgentConfig:
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise ValueError(f"unknown method {self.method!r}; choose one of {', '.join(METHODS)}")
+        # Ranges written so that NaN fails them too (every comparison with NaN is false).
+        for name, low, high in (("hidden_dim", 1, 8192), ("latent_dim", 1, 1024), ("num_filters", 1, 256),
+                                ("critic_target_update_freq", 1, 10_000), ("actor_update_freq", 1, 10_000),
+                                ("decoder_update_freq", 1, 10_000), ("n_step", 1, 1000), ("drq_pad", 0, 16)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+                raise ValueError(f"{name} must be an integer in {low}..{high}, got {value!r}")
+        checks = {
+            "discount": (lambda v: 0.0 < v <= 1.0, "in (0, 1]"),
+            "critic_tau": (lambda v: 0.0 < v <= 1.0, "in (0, 1]"),
+            "encoder_tau": (lambda v: 0.0 < v <= 1.0, "in (0, 1]"),
+            "critic_beta": (lambda v: 0.0 <= v < 1.0, "in [0, 1)"),
+            "actor_beta": (lambda v: 0.0 <= v < 1.0, "in [0, 1)"),
+            "alpha_beta": (lambda v: 0.0 <= v < 1.0, "in [0, 1)"),
+            "init_temperature": (lambda v: 0.0 < v < math.inf, "a finite number > 0"),
+            "decoder_latent_lambda": (lambda v: 0.0 <= v < math.inf, "a finite number >= 0"),
+            "decoder_weight_lambda": (lambda v: 0.0 <= v < math.inf, "a finite number >= 0"),
+            **{f"{net}_lr": (lambda v: 0.0 < v <= 1.0, "in (0, 1]") for net in ("critic", "actor", "alpha", "encoder",
+                                                                               "decoder")},
+        }
+        for name, (ok, wanted) in checks.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not ok(value):
+                raise ValueError(f"{name} must be {wanted}, got {value!r}")
 
 
 def random_shift(x: torch.Tensor, pad: int) -> torch.Tensor:
