@@ -228,6 +228,8 @@ class SitlDepthSource(DepthSource):
         except OSError as err:
             sock.close()
             raise DepthSourceError(f"cannot listen for SITL depth frames on {self.host}:{self.port}: {err}") from err
+        self.port = sock.getsockname()[1]  # the real port when asked for any (0)
+        self.name = f"sitl:{self.host}:{self.port}"
         sock.setblocking(False)
         try:
             sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)

@@ -30,7 +30,8 @@ link_lost                no autopilot heartbeat: nothing sent, the autopilot's f
 Failsafes while the policy flies (each step, logged with its reason): depth or odometry
 older than ``stale_periods`` control periods (1.5), the newest depth frame malformed, the
 policy output not finite or the policy raising, or the policy's answer not ready by its
-deadline (the newest frame's arrival + the stale limit: ``policy inference late``) ->
+deadline (the newest frame's arrival + the stale limit, or the next tick if sooner:
+``policy inference late``) ->
 zero-velocity hold; every command is clamped to the policy's action bounds. Inference
 runs on its own thread (:class:`InferenceWorker`), so a slow policy cannot stall the loop;
 a late answer is discarded when it comes, and the ticks hold while it is still running.
@@ -769,7 +770,9 @@ class Companion:
             info["hold"] = problem
             return self._hold(info)
         frame = self.latest_frame
-        deadline_s = frame.arrival_s + self.stale_s  # acting on older data is acting on stale data
+        # The answer is due before its frame goes stale (acting on older data is acting on stale
+        # data) and before the next tick (a late answer must not delay that tick's setpoint).
+        deadline_s = min(frame.arrival_s + self.stale_s, now + self.period_s)
         busy_since = self.worker.busy_since_s
         if busy_since is not None:  # a late call is still running: it cannot take a new observation
             info["hold"] = (f"policy inference late (still running after {(now - busy_since) * 1000:.0f} ms > "
@@ -789,9 +792,10 @@ class Companion:
         job = self.worker.submit(self.stack.frames, state)
         answer = self.worker.wait(job, deadline_s)
         if answer is None:  # the hold goes out now; the answer is discarded when it comes
-            late_ms = (time.monotonic() - frame.arrival_s) * 1000.0
-            info["hold"] = (f"policy inference late ({late_ms:.0f} ms since the frame > "
-                            f"{self.stale_s * 1000:.0f} ms deadline)")
+            given_up = time.monotonic()
+            info["hold"] = (f"policy inference late (no answer {(given_up - now) * 1000:.0f} ms into the call, "
+                            f"{(given_up - frame.arrival_s) * 1000:.0f} ms since the frame; deadline: the frame's "
+                            f"{self.stale_s * 1000:.0f} ms stale limit or the next tick)")
             return self._hold(info)
         raw, error, info["inference_s"] = answer
         if error is not None:  # a TorchScript runtime error must not take the loop down

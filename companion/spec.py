@@ -154,7 +154,7 @@ def goal_problem(goal_ned, from_ned=None) -> str | None:
         return f"goal must be three numbers N,E,D in metres, got {goal_ned!r}"
     if goal.shape != (3,) or not np.all(np.isfinite(goal)):
         return f"goal must be three finite numbers N,E,D in metres, got {np.asarray(goal_ned).tolist()!r}"
-    altitude_m = -goal[2]
+    altitude_m = -goal[2] + 0.0  # + 0.0: no "-0 m"
     if not MIN_GOAL_ALTITUDE_M <= altitude_m <= MAX_GOAL_ALTITUDE_M:
         return (f"goal altitude {altitude_m:g} m (D = {goal[2]:g}) is outside {MIN_GOAL_ALTITUDE_M:g} to "
                 f"{MAX_GOAL_ALTITUDE_M:g} m above home")
