@@ -291,7 +291,7 @@ class SlowAboveSpeed(nn.Module):
         return action
 
 
-def _slow_policy(path, seconds: float = 0.6):
+def _slow_policy(path, seconds: float = 0.8):
     torch.set_num_threads(1)
     probe = torch.jit.script(SlowAboveSpeed(50, -1.0))
     depth, state = torch.full((1, 3, 32, 32), 20.0), torch.zeros(1, 6)
@@ -375,8 +375,9 @@ def _start_slow(rig: Rig, tmp) -> None:
 
 @pytest.fixture(scope="module")
 def rigs(request, tmp_path_factory):
-    pool = ScenarioPool(request, tmp_path_factory, {"takeover": _start_takeover, "blind": _start_blind,
-                                                    "slow": _start_slow})
+    # "slow" first: it times its policy before the other rigs load the CPU.
+    pool = ScenarioPool(request, tmp_path_factory, {"slow": _start_slow, "takeover": _start_takeover,
+                                                    "blind": _start_blind})
     yield pool
     for rig in pool.rigs.values():
         if hasattr(rig, "feeder"):
@@ -389,13 +390,13 @@ def _steps(rig: Rig, after_t: float = -math.inf) -> list[dict]:
 
 
 @scenario("takeover")
-def test_goals_out_of_range_are_refused_and_a_takeover_survives_a_link_outage(rigs):
+def test_goals_out_of_range_are_refused_in_flight(rigs):
+    """Item 14: run-time goals out of range are refused, naming the sender; the flight goes on."""
     rig = rigs["takeover"]
     gcs = GroundStation(rig.gcs_port)
     gcs.wait_heartbeat()
     rig.wait_flying(60)
-    with rig.procs:
-        # --- item 14: run-time goals out of range are refused, naming the sender; the flight goes on
+    try:
         t_goals = time.time()
         for goal in ((3.4e38, 0.0, -3.0), (1e9, -1e9, -3.0), (10.0, 0.0, 50.0)):
             gcs.send_goal(*goal)
@@ -414,17 +415,25 @@ def test_goals_out_of_range_are_refused_and_a_takeover_survives_a_link_outage(ri
         gcs.send_goal(400.0, 0.0, -3.0)  # a sane goal still goes through
         rig.wait_for_event(lambda r: r.get("event") == "goal" and not r.get("refused") and r["t"] >= t_goals,
                            5.0, "the sane goal accepted")
+    finally:
+        gcs.close()
 
-        # --- item 4: the pilot takes over, the link drops for 3 s and comes back: still handed back
+
+@scenario("takeover")
+def test_a_takeover_survives_a_link_outage(rigs):
+    """Item 4: the pilot takes over, the link drops for 3 s and comes back: still handed back, for good."""
+    rig = rigs["takeover"]
+    gcs = GroundStation(rig.gcs_port)
+    gcs.wait_heartbeat()
+    rig.wait_flying(60)
+    with rig.procs:
         assert gcs.command(MAV_CMD_DO_SET_MODE, 1, 3, 0) == 0  # the pilot selects POSCTL
         handed = rig.wait_for_event(lambda r: r.get("event") == "phase" and r.get("to") == "handed_back", 5.0,
                                     "handed_back")
         assert gcs.command(MAV_CMD_INJECT_FAILURE, FAILURE_UNIT_MAVLINK_SIGNAL, FAILURE_OFF) == 0
-        rig.wait_for_event(lambda r: r.get("event") == "link" and r.get("lost") is True, 6.0, "link lost after takeover")
-        time.sleep(1.0)  # 3 s of outage in all
+        time.sleep(3.0)  # a 3 s outage: longer than the 2 s link timeout
         assert gcs.command(MAV_CMD_INJECT_FAILURE, FAILURE_UNIT_MAVLINK_SIGNAL, FAILURE_OK) == 0
-        rig.wait_for_event(lambda r: r.get("event") == "link" and r.get("lost") is False, 6.0, "link back after takeover")
-        time.sleep(3.0)  # the old code re-engaged within ~2 s of the link's return
+        time.sleep(4.0)  # the old code asked for OFFBOARD again ~3 s after the link's return
         assert rig.companion.poll() is None
         gcs.close()
     records = rig.companion_records()
@@ -437,6 +446,9 @@ def test_goals_out_of_range_are_refused_and_a_takeover_survives_a_link_outage(ri
     requests = [r for r in rig.vehicle_records() if r["event"] in ("mode_refused", "set_mode_msg", "armed")
                 and r["t"] > handed["t"]]
     assert requests == []
+    links = [r for r in records if r.get("event") == "link" and r["t"] > handed["t"]]
+    assert [r.get("lost") for r in links] == [True, False], [r["message"] for r in links]
+    assert "staying handed back" in links[0]["message"] and "staying handed back" in links[1]["message"]
 
 
 def _first_hold(rig: Rig, t_fault: float, reason: str) -> dict:
