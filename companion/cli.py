@@ -22,6 +22,8 @@ import sys
 from dataclasses import asdict
 from pathlib import Path
 
+from companion.flightlog import DEFAULT_LOG_KEEP, DEFAULT_LOG_MAX_MB
+from companion.recording import DEFAULT_RECORD_KEEP, DEFAULT_RECORD_MAX_MB
 from companion.spec import (
     DEFAULT_ACTION_SPEC,
     DEFAULT_CAMERA_SPEC,
@@ -29,6 +31,7 @@ from companion.spec import (
     LINK_TIMEOUT_MAX_S,
     LINK_TIMEOUT_MIN_S,
     STATE_NAMES,
+    goal_problem,
 )
 
 
@@ -58,6 +61,9 @@ def _goal(text: str):
         raise argparse.ArgumentTypeError(f"goal must be N,E,D in metres (local NED), got {text!r}") from None
     if len(values) != 3 or not all(math.isfinite(v) for v in values):
         raise argparse.ArgumentTypeError(f"goal must be three finite numbers N,E,D in metres, got {text!r}")
+    problem = goal_problem(values)  # the same check as goals sent in flight
+    if problem is not None:
+        raise argparse.ArgumentTypeError(problem)
     return np.asarray(values)
 
 
@@ -85,6 +91,14 @@ def _positive(name: str, upper: float = math.inf, lower: float = 0.0):
             raise argparse.ArgumentTypeError(f"{name} must be {low_text}{'' if upper == math.inf else f' and <= {upper:g}'}"
                                              f" (a finite number), got {text!r}")
         return value
+    return parse
+
+
+def _count(name: str):
+    def parse(text: str) -> int:
+        if not text.isdigit() or int(text) > 1000:
+            raise argparse.ArgumentTypeError(f"{name} must be a whole number in 0..1000, got {text!r}")
+        return int(text)
     return parse
 
 
@@ -153,7 +167,7 @@ def build_parser() -> argparse.ArgumentParser:
     flight = parser.add_argument_group("flight")
     flight.add_argument("--model", metavar="PATH", help="policy file (TorchScript with policy.json metadata)")
     flight.add_argument("--camera", type=_camera, default="realsense", metavar="SOURCE",
-                        help="depth source: realsense[:WxH@FPS] (default), sitl:PORT, replay:PATH[,loop]")
+                        help="depth source: realsense[:WxH@FPS] (default), sitl:PORT[:VEHICLE], replay:PATH[,loop]")
     flight.add_argument("--goal", type=_goal, metavar="N,E,D", help="goal in local NED metres (altitude is -D)")
     flight.add_argument("--arm", action="store_true",
                         help="arm, take off and switch to OFFBOARD/GUIDED automatically (SITL and tests; needs --takeoff)")
@@ -169,6 +183,15 @@ def build_parser() -> argparse.ArgumentParser:
     output.add_argument("--log", type=_output_file, default="-", metavar="PATH",
                         help="JSON-lines log of every control step and event (default '-': stdout)")
     output.add_argument("--record", type=_output_file, metavar="PATH", help="write a flight recording (depth + state + action)")
+    output.add_argument("--log-max-mb", type=_positive("--log-max-mb", 1e6), default=DEFAULT_LOG_MAX_MB, metavar="MB",
+                        help=f"rotate the log file once it holds MB megabytes (default {DEFAULT_LOG_MAX_MB:g}: ~4 h)")
+    output.add_argument("--log-keep", type=_count("--log-keep"), default=DEFAULT_LOG_KEEP, metavar="N",
+                        help=f"rotated log files kept as PATH.1 .. PATH.N (default {DEFAULT_LOG_KEEP})")
+    output.add_argument("--record-max-mb", type=_positive("--record-max-mb", 1e6), default=DEFAULT_RECORD_MAX_MB,
+                        metavar="MB", help="start a new recording part once one holds MB megabytes "
+                        f"(default {DEFAULT_RECORD_MAX_MB:g}: ~1.8 h)")
+    output.add_argument("--record-keep", type=_count("--record-keep"), default=DEFAULT_RECORD_KEEP, metavar="N",
+                        help=f"older recording parts kept as PATH.1 .. PATH.N (default {DEFAULT_RECORD_KEEP})")
     return parser
 
 
@@ -203,10 +226,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.describe:
         print(json.dumps(describe(), indent=2))
         return 0
-    from companion.flightlog import FlightLog
+    from companion.flightlog import FlightLog, RotatingTextFile
 
     try:
-        stream = sys.stdout if args.log == "-" else open(args.log, "a", buffering=1)  # noqa: SIM115
+        stream = sys.stdout if args.log == "-" else RotatingTextFile(args.log, int(args.log_max_mb * 1e6), args.log_keep)
     except OSError as err:
         print(f"companion: error: cannot open the log {args.log}: {err.strerror}", file=sys.stderr)
         return 1
@@ -266,7 +289,8 @@ def _fly(args: argparse.Namespace, log) -> int:
     try:
         if args.record:
             try:
-                recorder = FlightRecorder(args.record, policy.camera, policy.control_period_s, args.model)
+                recorder = FlightRecorder(args.record, policy.camera, policy.control_period_s, args.model,
+                                          max_bytes=int(args.record_max_mb * 1e6), keep=args.record_keep)
             except OSError as err:
                 return fail(ExitCode.ERROR, f"cannot write the recording {args.record}: {err.strerror}")
         key = load_signing_key(args.signing_key) if args.signing_key else None  # checked by parse_args

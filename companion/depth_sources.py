@@ -4,6 +4,8 @@ Three sources (``--camera``):
 
 * ``sitl:PORT`` or ``sitl:HOST:PORT`` — the frames ``python -m sitl.vehicle`` renders,
   one UDP datagram each (format: :mod:`companion.depth_wire`); the companion listens.
+  It locks to the first vehicle index it hears, or to ``VEHICLE`` with ``sitl:PORT:VEHICLE``
+  / ``sitl:HOST:PORT:VEHICLE``, and faults frames from any other vehicle.
 * ``realsense`` or ``realsense:WIDTHxHEIGHT@FPS`` — an Intel RealSense through
   ``pyrealsense2`` (optional extra ``swarmnav[realsense]``): z16 pixels times the device's
   depth scale, zeros are "no data", not obstacles at 0 m.
@@ -30,13 +32,21 @@ import struct
 import threading
 import time
 from abc import ABC, abstractmethod
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from companion.depth_wire import MAX_DATAGRAM, decode_frame
-from companion.observation import DepthFrameError, crop_to_hfov, min_pool_depth, validate_depth_frame
+from companion.observation import (
+    DepthBlindedError,
+    DepthFrameError,
+    check_not_blinded,
+    crop_to_hfov,
+    min_pool_depth,
+    validate_depth_frame,
+)
 from companion.spec import CameraSpec
 
 _SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux value; Python does not export it
@@ -81,9 +91,8 @@ class DepthConverter:
             raise DepthFrameError(f"depth frame must be 2-D [H, W], got shape {raw.shape}")
         if not np.issubdtype(raw.dtype, np.floating):
             raise DepthFrameError(f"depth frame must be floating-point metres, got dtype {raw.dtype}")
-        if not np.any(np.isfinite(raw)):
-            # Checked before pooling, which would turn an all-NaN frame into "all clear".
-            raise DepthFrameError("depth frame has no finite pixel (dead sensor)")
+        # Counted on the raw pixels: pooling would turn a covered lens (all 0) into "all clear".
+        check_not_blinded(raw)
         cam = self.camera
         if raw.shape == (cam.height, cam.width) and abs(source_hfov_deg - cam.hfov_deg) < 1e-3:
             return validate_depth_frame(raw, cam)
@@ -121,6 +130,9 @@ class DepthSource(ABC):
     def poll(self, now_s: float) -> list[DepthFrame | DepthFault]:
         """Everything that arrived since the last call, oldest first (never blocks)."""
 
+    def set_stale_limit(self, limit_s: float) -> None:
+        """How old (s) a frame may be when it arrives, for sources whose frames carry a capture stamp."""
+
     def close(self) -> None:
         """Release the device or socket."""
 
@@ -128,19 +140,86 @@ class DepthSource(ABC):
 # --------------------------------------------------------------------------- SITL
 
 
+class FrameTiming:
+    """Refuses replayed, reordered and old frames by the sender's stamps, without synchronized clocks.
+
+    The sender stamps each frame with its own clock (``stamp_us``, microseconds). A frame
+    whose stamp does not move forward is a replay or reordered; a frame is stale when its
+    ``arrival - stamp`` exceeds the smallest ``arrival - stamp`` of the last ``window``
+    accepted frames (the clock offset plus the fastest transport seen) by more than
+    ``stale_limit_s``. A single odd frame (e.g. a forged stamp far ahead) is refused and
+    changes nothing; a sender whose clock steps or who restarts is followed again after
+    ``resync_frames`` consecutive frames that agree with each other (a short hold).
+    """
+
+    def __init__(self, stale_limit_s: float = 0.15, window: int = 64, resync_frames: int = 5) -> None:
+        self.stale_limit_s = stale_limit_s
+        self.resync_frames = resync_frames
+        self._offsets_s: deque[float] = deque(maxlen=window)
+        self._last_stamp_us: int | None = None
+        self._candidate: list[tuple[int, float]] = []  # a new, self-consistent stamp series
+
+    def check(self, stamp_us: int, arrival_wall_s: float) -> str | None:
+        """Accept the frame (None) or say why it cannot be used."""
+        offset_s = arrival_wall_s - stamp_us * 1e-6
+        if self._last_stamp_us is None:
+            self._accept(stamp_us, offset_s)
+            return None
+        floor_s = min(self._offsets_s)
+        problem = None
+        if stamp_us <= self._last_stamp_us:
+            what = "repeats" if stamp_us == self._last_stamp_us else "goes backwards"
+            problem = (f"depth frame stamp {what} ({(stamp_us - self._last_stamp_us) / 1000.0:+.0f} ms): "
+                       "replayed or reordered")
+        elif offset_s - floor_s > self.stale_limit_s:
+            problem = (f"depth frame stale: {(offset_s - floor_s) * 1000.0:.0f} ms older than the freshest frames "
+                       f"(limit {self.stale_limit_s * 1000.0:.0f} ms)")
+        elif floor_s - offset_s > self.stale_limit_s:
+            problem = f"depth frame stamp jumped {(floor_s - offset_s) * 1000.0:.0f} ms ahead of the sender's clock"
+        if problem is None:
+            self._accept(stamp_us, offset_s)
+            return None
+        # A sustained series that is consistent with itself (a restarted sender, a clock step)
+        # becomes the new reference; one forged or replayed frame never does.
+        cand = self._candidate
+        if cand and stamp_us > cand[-1][0] and abs(offset_s - min(o for _s, o in cand)) <= self.stale_limit_s:
+            cand.append((stamp_us, offset_s))
+        else:
+            self._candidate = cand = [(stamp_us, offset_s)]
+        if len(cand) >= self.resync_frames:
+            self._offsets_s.clear()
+            self._offsets_s.extend(o for _s, o in cand)
+            self._last_stamp_us = stamp_us
+            self._candidate = []
+            return None
+        return problem
+
+    def _accept(self, stamp_us: int, offset_s: float) -> None:
+        self._offsets_s.append(offset_s)
+        self._last_stamp_us = stamp_us
+        self._candidate = []
+
+
 class SitlDepthSource(DepthSource):
     """Frames from ``python -m sitl.vehicle`` over loopback UDP (see :mod:`companion.depth_wire`).
 
     Arrival times are the kernel's receive timestamps (``SO_TIMESTAMPNS``), so latency
-    figures include time a datagram spent queued while the loop was busy.
+    figures include time a datagram spent queued while the loop was busy. The source locks
+    to one vehicle index (``vehicle``, or the first one heard) and faults frames from any
+    other, and refuses replayed, reordered and stale frames (:class:`FrameTiming`).
     """
 
-    def __init__(self, host: str, port: int, camera: CameraSpec) -> None:
+    def __init__(self, host: str, port: int, camera: CameraSpec, vehicle: int | None = None) -> None:
         self.host, self.port = host, port
         self.name = f"sitl:{host}:{port}"
         self.converter = DepthConverter(camera)
         self.sock: socket.socket | None = None
         self.frames_superseded = 0  # frames that arrived together with a newer one
+        self.vehicle = vehicle  # locked vehicle index (None: the first one heard)
+        self.timing = FrameTiming()
+
+    def set_stale_limit(self, limit_s: float) -> None:
+        self.timing.stale_limit_s = limit_s
 
     def start(self) -> None:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -149,6 +228,8 @@ class SitlDepthSource(DepthSource):
         except OSError as err:
             sock.close()
             raise DepthSourceError(f"cannot listen for SITL depth frames on {self.host}:{self.port}: {err}") from err
+        self.port = sock.getsockname()[1]  # the real port when asked for any (0)
+        self.name = f"sitl:{self.host}:{self.port}"
         sock.setblocking(False)
         try:
             sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
@@ -162,7 +243,7 @@ class SitlDepthSource(DepthSource):
     def poll(self, now_s: float) -> list[DepthFrame | DepthFault]:
         if self.sock is None:
             return []
-        received: list[tuple[bytes, float]] = []
+        received: list[tuple[bytes, float, float]] = []
         mono_now, wall_now = time.monotonic(), time.time()
         while True:
             try:
@@ -171,21 +252,39 @@ class SitlDepthSource(DepthSource):
                 break
             except OSError:
                 break
-            arrival = mono_now
+            arrival, arrival_wall = mono_now, wall_now
             for level, kind, payload in ancdata:
                 if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(payload) >= 16:
                     sec, nsec = struct.unpack_from("qq", payload)
-                    arrival = min(mono_now, mono_now - (wall_now - (sec + nsec * 1e-9)))
-            received.append((data, arrival))
+                    arrival_wall = sec + nsec * 1e-9
+                    arrival = min(mono_now, mono_now - (wall_now - arrival_wall))
+            received.append((data, arrival, arrival_wall))
         out: list[DepthFrame | DepthFault] = []
-        for index, (data, arrival) in enumerate(received):
+        for index, (data, arrival, arrival_wall) in enumerate(received):
             last = index == len(received) - 1
             try:
                 wire = decode_frame(data)
-                if not last:
-                    self.frames_superseded += 1  # a newer datagram follows: not worth converting
-                    continue
+            except DepthFrameError as err:
+                out.append(DepthFault(f"malformed depth frame: {err}", arrival))
+                continue
+            if self.vehicle is None:
+                self.vehicle = wire.vehicle  # lock to the first vehicle heard
+            if wire.vehicle != self.vehicle:
+                out.append(DepthFault(f"depth frame from vehicle {wire.vehicle}, but {self.name} is locked to "
+                                      f"vehicle {self.vehicle}", arrival))
+                continue
+            if not last:
+                self.frames_superseded += 1  # a newer datagram follows: not worth converting
+                continue
+            problem = self.timing.check(wire.stamp_us, arrival_wall)
+            if problem is not None:
+                out.append(DepthFault(f"{problem} (seq {wire.seq}, {self.name})", arrival))
+                continue
+            try:
                 depth = self.converter.convert(wire.depth_m, wire.hfov_deg)
+            except DepthBlindedError as err:
+                out.append(DepthFault(f"{err} ({self.name})", arrival))
+                continue
             except DepthFrameError as err:
                 out.append(DepthFault(f"malformed depth frame: {err}", arrival))
                 continue
@@ -254,6 +353,8 @@ class ReplayDepthSource(DepthSource):
             record = self._records[due]
             try:
                 depth = self.converter.convert(np.array(record["depth_m"]), self._hfov_deg)
+            except DepthBlindedError as err:
+                out.append(DepthFault(f"{err} ({self.name})", now_s))
             except DepthFrameError as err:
                 out.append(DepthFault(f"malformed depth frame in recording: {err}", now_s))
             else:
@@ -324,6 +425,8 @@ class RealSenseDepthSource(DepthSource):
                     metres = z16_to_metres(np.asanyarray(depth_frame.get_data()), self.depth_scale_m)
                     item = DepthFrame(self.converter.convert(metres, self.hfov_deg), arrival,
                                       int(depth_frame.get_frame_number()), None)
+                except DepthBlindedError as err:
+                    item = DepthFault(f"{err} ({self.name})", arrival)
                 except DepthFrameError as err:
                     item = DepthFault(f"malformed depth frame: {err}", arrival)
             with self._lock:
@@ -363,7 +466,7 @@ class RealSenseDepthSource(DepthSource):
 
 # --------------------------------------------------------------------------- factory
 
-CAMERA_FORMS = "sitl:PORT, sitl:HOST:PORT, realsense, realsense:WIDTHxHEIGHT@FPS, replay:PATH or replay:PATH,loop"
+CAMERA_FORMS = "sitl:PORT[:VEHICLE], sitl:HOST:PORT[:VEHICLE], realsense, realsense:WIDTHxHEIGHT@FPS, replay:PATH or replay:PATH,loop"
 
 
 def parse_camera_spec(text: str) -> tuple[str, dict]:
@@ -371,15 +474,24 @@ def parse_camera_spec(text: str) -> tuple[str, dict]:
     kind, _, rest = text.partition(":")
     if kind == "sitl":
         parts = rest.split(":")
+        vehicle_text = None
         if len(parts) == 1:
             host, port_text = "127.0.0.1", parts[0]
+        elif len(parts) == 2 and parts[0].isdigit():  # PORT:VEHICLE (a host is never a bare number)
+            (port_text, vehicle_text), host = parts, "127.0.0.1"
         elif len(parts) == 2:
             host, port_text = parts
+        elif len(parts) == 3:
+            host, port_text, vehicle_text = parts
         else:
-            raise ValueError(f"invalid camera {text!r}: use sitl:PORT or sitl:HOST:PORT")
+            raise ValueError(f"invalid camera {text!r}: use sitl:PORT, sitl:HOST:PORT, sitl:PORT:VEHICLE "
+                             "or sitl:HOST:PORT:VEHICLE")
         if not port_text.isdigit() or not 1 <= int(port_text) <= 65535:
             raise ValueError(f"invalid camera {text!r}: the port must be a number in 1..65535")
-        return "sitl", {"host": host or "127.0.0.1", "port": int(port_text)}
+        if vehicle_text is not None and not (vehicle_text.isdigit() and int(vehicle_text) <= 65535):
+            raise ValueError(f"invalid camera {text!r}: the vehicle index must be a number in 0..65535")
+        return "sitl", {"host": host or "127.0.0.1", "port": int(port_text),
+                        "vehicle": None if vehicle_text is None else int(vehicle_text)}
     if kind == "realsense":
         if not rest:
             return "realsense", {}
@@ -404,7 +516,7 @@ def open_depth_source(text: str, camera: CameraSpec) -> DepthSource:
     """Build (not start) the source named by a ``--camera`` value for a policy's ``camera``."""
     kind, options = parse_camera_spec(text)
     if kind == "sitl":
-        return SitlDepthSource(options["host"], options["port"], camera)
+        return SitlDepthSource(options["host"], options["port"], camera, vehicle=options["vehicle"])
     if kind == "realsense":
         return RealSenseDepthSource(camera, **options)
     if not Path(options["path"]).is_file():

@@ -16,11 +16,40 @@ from __future__ import annotations
 import numpy as np
 
 from companion.frames import ned_to_frd
-from companion.spec import STATE_DIM, CameraSpec
+from companion.spec import MAX_INVALID_DEPTH_FRACTION, STATE_DIM, CameraSpec
 
 
 class DepthFrameError(ValueError):
     """A depth frame that cannot be turned into a valid observation."""
+
+
+class DepthBlindedError(DepthFrameError):
+    """A well-formed frame from a blinded or dead sensor (too many pixels without data)."""
+
+
+def check_not_blinded(depth_m: np.ndarray, max_invalid_fraction: float = MAX_INVALID_DEPTH_FRACTION) -> None:
+    """Raise :class:`DepthBlindedError` if too many pixels of a raw frame are invalid.
+
+    Invalid means 0 (a stereo camera's "no data"), negative (never a distance) or non-finite.
+    Must run on the camera's own pixels *before* any conversion: pooling and validation
+    turn invalid pixels into ``max_range_m``, which would make a covered lens read as clear
+    sky. See :data:`companion.spec.MAX_INVALID_DEPTH_FRACTION` for the threshold.
+    """
+    depth_m = np.asarray(depth_m)
+    total = depth_m.size
+    if total == 0:
+        raise DepthBlindedError("depth blinded: the frame has no pixel")
+    with np.errstate(invalid="ignore"):
+        finite = np.isfinite(depth_m)
+        zero = int(np.count_nonzero(depth_m == 0))
+        negative = int(np.count_nonzero(depth_m < 0))
+    non_finite = total - int(np.count_nonzero(finite))
+    invalid = zero + negative + non_finite
+    if invalid > max_invalid_fraction * total:
+        raise DepthBlindedError(
+            f"depth blinded: {100.0 * invalid / total:.0f} % of pixels invalid "
+            f"(zero {zero}, negative {negative}, NaN/inf {non_finite} of {total}; "
+            f"limit {100.0 * max_invalid_fraction:.0f} %)")
 
 
 def build_state(
@@ -103,17 +132,17 @@ def crop_to_hfov(depth_m: np.ndarray, source_hfov_deg: float, target: CameraSpec
 def validate_depth_frame(depth_m: np.ndarray, camera: CameraSpec) -> np.ndarray:
     """Check one frame [H, W] against the camera spec and return it as clean float32.
 
-    Raises :class:`DepthFrameError` with a precise reason for a wrong shape, a wrong
-    dtype or a frame with no finite value at all (a dead sensor, not an empty sky).
-    Non-finite or non-positive pixels are "no data" and read ``max_range_m``.
+    Raises :class:`DepthFrameError` with a precise reason for a wrong shape or a wrong
+    dtype, and :class:`DepthBlindedError` for a frame whose pixels are mostly invalid (a
+    blinded or dead sensor, not an empty sky: :func:`check_not_blinded`). The remaining
+    non-finite or non-positive pixels are "no data" and read ``max_range_m``.
     """
     depth_m = np.asarray(depth_m)
     if depth_m.shape != (camera.height, camera.width):
         raise DepthFrameError(f"depth frame has shape {depth_m.shape}, expected ({camera.height}, {camera.width})")
     if not np.issubdtype(depth_m.dtype, np.floating):
         raise DepthFrameError(f"depth frame must be floating-point metres, got dtype {depth_m.dtype}")
-    if not np.any(np.isfinite(depth_m)):
-        raise DepthFrameError("depth frame has no finite pixel")
+    check_not_blinded(depth_m)
     valid = np.isfinite(depth_m) & (depth_m > 0)
     return np.where(valid, np.minimum(depth_m, camera.max_range_m), camera.max_range_m).astype(np.float32)
 

@@ -27,6 +27,12 @@ yaw_rad         float32            heading from odometry
 
 Records are appended as the flight goes, so a recording cut short by a crash or power loss
 is readable up to its last complete record.
+
+A recording rotates into parts: once a file holds ``max_bytes`` it is renamed ``PATH.1``
+(older parts move to ``PATH.2`` ... ``PATH.<keep>``, the oldest is deleted) and a new ``PATH``
+starts with its own header (``part`` counts from 0), so every part is a complete recording
+that :func:`read_recording` and ``--camera replay:`` read on their own (``--record-max-mb``,
+``--record-keep``; defaults :data:`DEFAULT_RECORD_MAX_MB`, :data:`DEFAULT_RECORD_KEEP`).
 """
 
 from __future__ import annotations
@@ -37,10 +43,15 @@ from pathlib import Path
 
 import numpy as np
 
+from companion.flightlog import rotate_files
 from companion.spec import CameraSpec
 
 FORMAT = "swarmnav-recording"
 VERSION = 1
+#: Recording size cap: ~143 MB per flight hour at 10 Hz (32x32 frames), so a part holds ~1.8 h
+#: and the whole recording (current + kept parts) at most ~1 GB.
+DEFAULT_RECORD_MAX_MB = 256.0
+DEFAULT_RECORD_KEEP = 3
 
 
 class RecordingError(ValueError):
@@ -59,20 +70,28 @@ def record_dtype(camera: CameraSpec) -> np.dtype:
 class FlightRecorder:
     """Appends one record per control step to a recording file."""
 
-    def __init__(self, path: str | Path, camera: CameraSpec, control_period_s: float, policy_path: str) -> None:
+    def __init__(self, path: str | Path, camera: CameraSpec, control_period_s: float, policy_path: str,
+                 max_bytes: int | None = None, keep: int = DEFAULT_RECORD_KEEP) -> None:
         self.path = Path(path)
         self.dtype = record_dtype(camera)
+        self.camera, self.control_period_s, self.policy_path = camera, control_period_s, policy_path
+        self.max_bytes, self.keep = max_bytes, keep
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.part = 0
+        self._open_part()
+        self._record = np.zeros((), dtype=self.dtype)
+        self.records = 0
+
+    def _open_part(self) -> None:
         self._file = open(self.path, "wb")  # noqa: SIM115 - kept open for the flight
         header = {
-            "format": FORMAT, "version": VERSION, "camera": camera.to_dict(),
-            "control_period_s": control_period_s, "policy": policy_path,
+            "format": FORMAT, "version": VERSION, "camera": self.camera.to_dict(),
+            "control_period_s": self.control_period_s, "policy": self.policy_path, "part": self.part,
             "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
             "record_dtype": [list(f) if len(f) == 2 else [f[0], f[1], list(f[2])] for f in self.dtype.descr],
         }
         self._file.write((json.dumps(header) + "\n").encode())
-        self._record = np.zeros((), dtype=self.dtype)
-        self.records = 0
+        self._size = self._file.tell()
 
     def write(self, *, t_wall_s: float, t_mono_s: float, step: int, frame_seq: int, hold: bool,
               depth_m: np.ndarray, state: np.ndarray, action: np.ndarray, pos_ned_m: np.ndarray,
@@ -82,8 +101,14 @@ class FlightRecorder:
         r["t_wall_s"], r["t_mono_s"], r["step"], r["frame_seq"], r["hold"] = t_wall_s, t_mono_s, step, frame_seq, hold
         r["depth_m"], r["state"], r["action"], r["pos_ned_m"], r["yaw_rad"] = depth_m, state, action, pos_ned_m, yaw_rad
         self._file.write(r.tobytes())
+        self._size += self.dtype.itemsize
         self.records += 1
-        if self.records % 10 == 0:
+        if self.max_bytes is not None and self._size >= self.max_bytes:
+            self._file.close()
+            rotate_files(self.path, self.keep)
+            self.part += 1
+            self._open_part()
+        elif self.records % 10 == 0:
             self._file.flush()  # at most a second of flight lost on a crash
 
     def close(self) -> None:

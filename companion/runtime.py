@@ -21,15 +21,22 @@ flying_to_goal           the policy flies; every step may become a hold (failsaf
 holding_at_goal          within 0.5 m of the goal: zero-velocity setpoints
 landing                  (``--land-on-arrival``) the autopilot lands; nothing sent
 landed                   disarmed on the ground
-handed_back              the pilot changed the mode: nothing sent, the mode is never requested back
+handed_back              the pilot changed the mode: nothing sent, the mode is never requested back;
+                         final for the life of the process (a later link loss and return
+                         stays here: a takeover is never undone by the companion)
 link_lost                no autopilot heartbeat: nothing sent, the autopilot's failsafe acts
 =======================  ====================================================================
 
 Failsafes while the policy flies (each step, logged with its reason): depth or odometry
 older than ``stale_periods`` control periods (1.5), the newest depth frame malformed, the
-policy output not finite or the policy raising -> zero-velocity hold; every command is
-clamped to the policy's action bounds. The loop also wakes when the inputs would go stale,
-so a stale-input hold goes out at once (an extra step between ticks), not at the next tick.
+policy output not finite or the policy raising, or the policy's answer not ready by its
+deadline (the newest frame's arrival + the stale limit, or the next tick if sooner:
+``policy inference late``) ->
+zero-velocity hold; every command is clamped to the policy's action bounds. Inference
+runs on its own thread (:class:`InferenceWorker`), so a slow policy cannot stall the loop;
+a late answer is discarded when it comes, and the ticks hold while it is still running.
+The loop also wakes when the inputs would go stale, so a stale-input hold goes out at once
+(an extra step between ticks), not at the next tick.
 
 The control clock ticks at the policy's control period. With ``camera_sync`` it slowly
 shifts its phase (at most 2 ms per tick) so that ticks fall just after depth frames arrive:
@@ -42,6 +49,7 @@ import gc
 import math
 import select
 import signal
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -50,13 +58,14 @@ from enum import Enum, IntEnum
 import numpy as np
 
 from companion.depth_sources import DepthFault, DepthFrame, DepthSource
-from companion.flightlog import FlightLog, percentiles_ms, resident_memory_mb
+from companion.flightlog import FlightLog, RunningStats, resident_memory_mb
 from companion.mavlink_link import AutopilotLink, PendingCommand, mavlink
 from companion.flight_modes import ARDUCOPTER_GUIDED, PX4_MAIN_MODE_OFFBOARD, AutopilotKind
 from companion.observation import DepthFrameStack, build_state
 from companion.policy import LoadedPolicy
 from companion.recording import FlightRecorder
 from companion.sdnotify import SystemdNotifier
+from companion.spec import goal_problem
 
 
 class ExitCode(IntEnum):
@@ -186,6 +195,90 @@ class ControlClock:
         return correction
 
 
+class InferenceWorker:
+    """Runs the policy on its own thread, so the control loop can give up on a late answer.
+
+    One job at a time: :meth:`submit` hands over an observation, :meth:`wait` returns the
+    answer if it comes before a deadline. A job given up on keeps running (a TorchScript call
+    cannot be interrupted); its answer is discarded when it arrives and counted in
+    :attr:`discarded`, and until then :attr:`busy_since_s` says the worker is still busy.
+    Torch releases the GIL inside its operators, so the loop keeps running meanwhile.
+    """
+
+    def __init__(self, policy: LoadedPolicy) -> None:
+        self.policy = policy
+        self._cv = threading.Condition()
+        self._job: tuple[int, np.ndarray, np.ndarray] | None = None
+        self._results: dict[int, tuple[np.ndarray | None, BaseException | None, float]] = {}
+        self._abandoned: set[int] = set()
+        self._next_id = 0
+        self._stop = False
+        self.busy_since_s: float | None = None  # monotonic start of the job in progress
+        self.discarded: list[float] = []  # durations (s) of late answers thrown away, for the log
+        self._thread = threading.Thread(target=self._run, name="policy-inference", daemon=True)
+
+    def start(self) -> None:
+        import torch  # noqa: PLC0415 - the policy's runtime is already loaded
+
+        self._threads = torch.get_num_threads()  # the CLI's choice (1), applied in the worker too
+        self._thread.start()
+
+    def submit(self, depth: np.ndarray, state: np.ndarray) -> int:
+        """Start inference on a copy of the observation; return the job id."""
+        with self._cv:
+            self._next_id += 1
+            self._job = (self._next_id, np.array(depth, dtype=np.float32), np.array(state, dtype=np.float32))
+            self.busy_since_s = time.monotonic()
+            self._cv.notify_all()
+            return self._next_id
+
+    def wait(self, job_id: int, deadline_s: float) -> tuple[np.ndarray | None, BaseException | None, float] | None:
+        """(output, error, seconds) of ``job_id``, or None if not done by ``deadline_s`` (it is then abandoned)."""
+        with self._cv:
+            while job_id not in self._results:
+                remaining = deadline_s - time.monotonic()
+                if remaining <= 0:
+                    self._abandoned.add(job_id)
+                    return None
+                self._cv.wait(remaining)
+            return self._results.pop(job_id)
+
+    def _run(self) -> None:
+        import torch  # noqa: PLC0415
+
+        torch.set_num_threads(self._threads)
+        while True:
+            with self._cv:
+                while self._job is None and not self._stop:
+                    self._cv.wait()
+                if self._stop:
+                    return
+                job_id, depth, state = self._job
+                self._job = None
+            started = time.perf_counter()
+            output = error = None
+            try:
+                output = np.asarray(self.policy.act(depth, state), dtype=np.float64).reshape(-1)
+            except Exception as err:  # noqa: BLE001 - a TorchScript runtime error is reported, not fatal
+                error = err
+            seconds = time.perf_counter() - started
+            with self._cv:
+                self.busy_since_s = None
+                if job_id in self._abandoned:
+                    self._abandoned.discard(job_id)
+                    self.discarded.append(seconds)
+                else:
+                    self._results[job_id] = (output, error, seconds)
+                self._cv.notify_all()
+
+    def close(self) -> None:
+        with self._cv:
+            self._stop = True
+            self._cv.notify_all()
+        if self._thread.is_alive():
+            self._thread.join(timeout=0.2)  # a call in progress cannot be interrupted: it is a daemon
+
+
 class Companion:
     """The flight procedure around a policy, a depth source and an autopilot link.
 
@@ -212,6 +305,9 @@ class Companion:
         self.exit_reason = ""
         self.step_index = 0
         self.engaged = False  # the autopilot has followed us since we engaged
+        self.taken_over = False  # the pilot took the vehicle: final for the life of the process
+        self.landed = False  # landed and disarmed: the flight is over, never armed again by us
+        self._link_down_after_takeover = False
         self.latest_frame: DepthFrame | None = None
         self.latest_fault: DepthFault | None = None
         self._last_pushed_s = -math.inf
@@ -227,12 +323,14 @@ class Companion:
         self._odometry_request: PendingCommand | None = None
         self._fallback_requested = False
         self.clock = ControlClock(self.period_s, self._started_s, lock=config.camera_sync)
+        self.worker = InferenceWorker(policy)
+        self.depth.set_stale_limit(self.stale_s)  # a frame older than this on arrival is refused
 
-        # statistics
-        self.latency_s: deque[float] = deque(maxlen=200_000)
-        self.inference_s: deque[float] = deque(maxlen=200_000)
-        self.tick_late_s: deque[float] = deque(maxlen=200_000)
-        self.period_dev_s: deque[float] = deque(maxlen=200_000)
+        # statistics: windowed since the last summary + a bounded histogram for the whole flight
+        self.latency_s = RunningStats()
+        self.inference_s = RunningStats()
+        self.tick_late_s = RunningStats()
+        self.period_dev_s = RunningStats()
         self.overruns = 0
         self._last_tick_s: float | None = None
         self._last_summary_s = time.monotonic()
@@ -249,6 +347,7 @@ class Companion:
         gc.freeze()
         now = time.monotonic()
         clock = self.clock = ControlClock(self.period_s, now, lock=self.config.camera_sync)
+        self.worker.start()
         next_heartbeat_s = now
         self.link.send_heartbeat()
         self._request_streams()
@@ -292,6 +391,7 @@ class Companion:
         finally:
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
+            self.worker.close()
             self._write_summary(final=True)
             self.notifier.stopping(self.exit_reason or "stopping")
         return self.exit_code
@@ -333,6 +433,8 @@ class Companion:
                 self._request_fallback_streams()
             elif event.kind == "io_error":
                 self._event("link", f"link I/O error: {event.detail['error']}", level="warning")
+            elif event.kind == "ignored_traffic":  # another sender or link id posing as the autopilot
+                self._event("ignored_traffic", event.detail["reason"], level="warning", count=event.detail["count"])
         req = self._odometry_request
         if req is not None and req.done and not req.accepted:
             self._odometry_request = None
@@ -362,6 +464,18 @@ class Companion:
 
     def _on_goal(self, detail: dict) -> None:
         goal = np.asarray(detail["goal_ned"], dtype=np.float64)
+        sender = f"system {detail['from'][0]}, {'signed' if detail['signed'] else 'unsigned'}"
+        odom = self.link.odometry
+        problem = goal_problem(goal, None if odom is None else odom.pos_ned)
+        if problem is not None:  # keep flying (or holding) on the goal we had
+            self._event("goal", f"goal {np.round(goal, 2).tolist()} from {sender} refused: {problem}; keeping "
+                        f"{None if self.goal_ned is None else np.round(self.goal_ned, 2).tolist()}", level="warning",
+                        refused=True, reason=problem, sender=detail["from"], signed=detail["signed"])
+            try:
+                self.link.send_statustext(mavlink.MAV_SEVERITY_WARNING, f"companion: goal refused: {problem}"[:50])
+            except OSError:
+                pass
+            return
         if self.phase in (FlightPhase.LANDING, FlightPhase.LANDED, FlightPhase.HANDED_BACK, FlightPhase.LINK_LOST):
             self._event("goal", f"goal {np.round(goal, 2).tolist()} ignored while {self.phase.value}", level="warning")
             return
@@ -415,6 +529,10 @@ class Companion:
                 self.period_dev_s.append(abs(period - self.period_s))
 
         info: dict = {}
+        while self.worker.discarded:
+            seconds = self.worker.discarded.pop(0)
+            self._event("policy_late", f"discarded a late policy answer (inference took {seconds * 1000:.0f} ms)",
+                        level="warning", inference_ms=seconds * 1000.0)
         command = self._run_phase(now, info)
         sent_s = None
         if command is not None:
@@ -462,6 +580,11 @@ class Companion:
         return sent_s
 
     def _run_phase(self, now: float, info: dict) -> np.ndarray | None:
+        if self.taken_over:  # final: nothing is ever sent or requested again
+            self._watch_link_after_takeover(now)
+            if self.config.timeout_s is not None and now - self._started_s > self.config.timeout_s:
+                self._finish(ExitCode.TIMEOUT, f"not arrived within --timeout {self.config.timeout_s:g} s")
+            return None
         # Whole-flight conditions first: the link, the mode, the clock.
         if self.phase is not FlightPhase.LINK_LOST and self.link.heartbeat_age_s(now) > self.config.link_timeout_s:
             self._set_phase(FlightPhase.LINK_LOST, f"link lost: no heartbeat for {self.link.heartbeat_age_s(now):.1f} s; "
@@ -473,9 +596,8 @@ class Companion:
                                                FlightPhase.LINK_LOST):
             hb = self.link.heartbeat
             if not hb.in_companion_mode:
-                self.engaged = False
-                self._set_phase(FlightPhase.HANDED_BACK, f"pilot took over: mode {hb.mode}; stopped commanding "
-                                "(restart the companion to engage again)", level="warning")
+                self._hand_back(f"pilot took over: mode {hb.mode}; stopped commanding "
+                                "(restart the companion to engage again)")
                 if self.config.exit_on_arrival:
                     self._finish(ExitCode.PILOT_TOOK_OVER, f"pilot took over (mode {hb.mode})")
                 return None
@@ -653,6 +775,14 @@ class Companion:
             info["hold"] = problem
             return self._hold(info)
         frame = self.latest_frame
+        # The answer is due before its frame goes stale (acting on older data is acting on stale
+        # data) and before the next tick (a late answer must not delay that tick's setpoint).
+        deadline_s = min(frame.arrival_s + self.stale_s, now + self.period_s)
+        busy_since = self.worker.busy_since_s
+        if busy_since is not None:  # a late call is still running: it cannot take a new observation
+            info["hold"] = (f"policy inference late (still running after {(now - busy_since) * 1000:.0f} ms > "
+                            f"{self.stale_s * 1000:.0f} ms deadline)")
+            return self._hold(info)
         info["frame"] = frame
         # After a gap in depth, start the stack afresh (as at an episode start) rather than
         # mixing frames from before the gap with new ones.
@@ -664,14 +794,18 @@ class Companion:
         state = build_state(odom.pos_ned[None], np.array([odom.yaw_rad]), odom.vel_ned[None],
                             np.array([odom.yaw_rate_rad_s]), self.goal_ned[None])
         info["state"] = state[0]
-        started = time.perf_counter()
-        try:
-            raw = np.asarray(self.policy.act(self.stack.frames, state), dtype=np.float64).reshape(-1)
-        except Exception as err:  # a TorchScript runtime error must not take the loop down
-            info["inference_s"] = time.perf_counter() - started
-            info["hold"] = f"policy raised {type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"
+        job = self.worker.submit(self.stack.frames, state)
+        answer = self.worker.wait(job, deadline_s)
+        if answer is None:  # the hold goes out now; the answer is discarded when it comes
+            given_up = time.monotonic()
+            info["hold"] = (f"policy inference late (no answer {(given_up - now) * 1000:.0f} ms into the call, "
+                            f"{(given_up - frame.arrival_s) * 1000:.0f} ms since the frame; deadline: the frame's "
+                            f"{self.stale_s * 1000:.0f} ms stale limit or the next tick)")
             return self._hold(info)
-        info["inference_s"] = time.perf_counter() - started
+        raw, error, info["inference_s"] = answer
+        if error is not None:  # a TorchScript runtime error must not take the loop down
+            info["hold"] = f"policy raised {type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"
+            return self._hold(info)
         self.inference_s.append(info["inference_s"])
         info["policy"] = raw
         if raw.shape != (3,) or not np.all(np.isfinite(raw)):
@@ -729,13 +863,13 @@ class Companion:
             self._set_phase(FlightPhase.HOLDING_AT_GOAL, "landing refused: holding at the goal instead", level="warning")
             return np.zeros(3)
         if not hb.armed:
+            self.landed = True
             self._set_phase(FlightPhase.LANDED, "landed and disarmed")
             if self.config.exit_on_arrival:
                 self._finish(ExitCode.OK, "arrived and landed")
             return None
         if not hb.landing and not hb.in_companion_mode and self._pending is not None and self._pending.done:
-            self._set_phase(FlightPhase.HANDED_BACK, f"pilot took over during landing: mode {hb.mode}", level="warning")
-            self.engaged = False
+            self._hand_back(f"pilot took over during landing: mode {hb.mode}")
             if self.config.exit_on_arrival:
                 self._finish(ExitCode.PILOT_TOOK_OVER, f"pilot took over during landing (mode {hb.mode})")
         return None
@@ -748,13 +882,35 @@ class Companion:
 
     def _phase_link_lost(self, now: float, info: dict) -> np.ndarray | None:
         if self.link.heartbeat_age_s(now) <= self.config.link_timeout_s:
-            if self.engaged:
-                self.engaged = False
-                self._set_phase(FlightPhase.HANDED_BACK, "link back; not re-engaging on our own "
-                                "(restart the companion to fly again)", level="warning")
+            if self.landed:  # a link blip on the ground must not start a second flight (--arm)
+                self._set_phase(FlightPhase.LANDED, "link back; the flight is over (restart the companion to fly again)")
+            elif self.engaged:
+                self._hand_back("link back; not re-engaging on our own (restart the companion to fly again)")
             else:
                 self._set_phase(FlightPhase.WAITING_FOR_TELEMETRY, "link back")
         return None
+
+    def _hand_back(self, why: str) -> None:
+        """The pilot has the vehicle, for good: no setpoint, mode or arming request ever again."""
+        self.engaged = False
+        self.taken_over = True
+        self._sequence, self._pending = [], None
+        self._set_phase(FlightPhase.HANDED_BACK, why, level="warning")
+
+    def _watch_link_after_takeover(self, now: float) -> None:
+        """Report link loss and return after a takeover; the phase stays handed_back."""
+        down = self.link.heartbeat_age_s(now) > self.config.link_timeout_s
+        if down == self._link_down_after_takeover:
+            return
+        self._link_down_after_takeover = down
+        if down:
+            self._event("link", f"link lost after the takeover: no heartbeat for {self.link.heartbeat_age_s(now):.1f} s; "
+                        "staying handed back", level="warning", lost=True)
+            if self.config.exit_on_arrival:
+                self._finish(ExitCode.LINK, "link to the autopilot lost")
+        else:
+            self._event("link", "link back after the takeover; staying handed back (the pilot has the vehicle)",
+                        level="warning", lost=False)
 
     # ================================================================== bookkeeping
     def _set_phase(self, phase: FlightPhase, why: str, level: str = "info") -> None:
@@ -792,12 +948,23 @@ class Companion:
             pass
 
     def _write_summary(self, final: bool) -> None:
+        """Statistics since the last summary (every 10 s) or of the whole flight (``final``).
+
+        Both cost O(samples in 10 s) or O(histogram bins), never O(flight length): the tick
+        that writes one must stay on time after hours of flight.
+        """
         self._last_summary_s = time.monotonic()
+
+        def stats(series: RunningStats) -> dict:
+            return series.total() if final else series.window()
+
         self.log.summary(
-            final=final, steps=self.step_index, policy_steps=self.policy_steps, holds=self.holds,
-            frame_to_setpoint_ms=percentiles_ms(self.latency_s), inference_ms=percentiles_ms(self.inference_s),
-            tick_late_ms=percentiles_ms(self.tick_late_s), period_jitter_ms=percentiles_ms(self.period_dev_s),
+            final=final, window="flight" if final else "10 s", steps=self.step_index,
+            policy_steps=self.policy_steps, holds=self.holds,
+            frame_to_setpoint_ms=stats(self.latency_s), inference_ms=stats(self.inference_s),
+            tick_late_ms=stats(self.tick_late_s), period_jitter_ms=stats(self.period_dev_s),
             overruns=self.overruns, missed_ticks=self.clock.missed_ticks,
             setpoints_sent=self.link.setpoints_sent, refused_unsigned=self.link.refused_unsigned,
+            dropped_foreign_address=self.link.dropped_foreign_address, dropped_foreign_link=self.link.dropped_foreign_link,
             phase=self.phase.value, **resident_memory_mb(),
         )

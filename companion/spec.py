@@ -137,3 +137,54 @@ class CameraSpec:
 DEFAULT_ACTION_SPEC = ActionSpec()
 DEFAULT_CAMERA_SPEC = CameraSpec()
 
+
+
+# --------------------------------------------------------------------------- onboard safety limits (issue 16)
+
+#: A depth frame with more than this fraction of invalid pixels (0, negative or non-finite,
+#: counted on the camera's raw image before any conversion) is a blinded or dead sensor, not
+#: an empty sky: the companion holds. A RealSense reports 0 where it has no stereo match. A
+#: level camera in open sky loses the sky (at most the upper half of the image) plus
+#: textureless patches below the horizon: typically 40-70 % invalid, so 50 % would hold in
+#: normal flight. A covered lens, a lens against a wall (inside the ~0.3 m minimum range),
+#: darkness or a dead sensor read 95-100 % invalid. 90 % separates the two with a margin on
+#: each side; the 10 % that must remain valid is still ~100 pixels of the 32x32 policy view.
+MAX_INVALID_DEPTH_FRACTION = 0.90
+
+#: Goals (``--goal`` and run-time SET_POSITION_TARGET_LOCAL_NED) must be finite and within
+#: these limits, or they are refused. Altitude is -D in the local NED frame, whose origin is
+#: the autopilot's home (the take-off point): at least 0.5 m above it (never underground or
+#: at ground level, where the policy cannot fly) and at most 120 m (the legal ceiling of the
+#: open category, EU and US).
+MIN_GOAL_ALTITUDE_M = 0.5
+MAX_GOAL_ALTITUDE_M = 120.0
+#: Horizontal distance (m) from the vehicle's current position (from home for ``--goal``,
+#: checked before any odometry): farther than one battery (~20 min) at the 2 m/s forward
+#: bound is a typo or an attack, not a mission.
+MAX_GOAL_DISTANCE_M = 2500.0
+
+
+def goal_problem(goal_ned, from_ned=None) -> str | None:
+    """Why ``goal_ned`` (N, E, D in metres, local NED) is not an acceptable goal, or None.
+
+    Args:
+        goal_ned: the goal, three numbers.
+        from_ned: the vehicle's position (local NED, m) for the distance check; None measures
+            from home (the NED origin).
+    """
+    try:
+        goal = np.asarray(goal_ned, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        return f"goal must be three numbers N,E,D in metres, got {goal_ned!r}"
+    if goal.shape != (3,) or not np.all(np.isfinite(goal)):
+        return f"goal must be three finite numbers N,E,D in metres, got {np.asarray(goal_ned).tolist()!r}"
+    altitude_m = -goal[2] + 0.0  # + 0.0: no "-0 m"
+    if not MIN_GOAL_ALTITUDE_M <= altitude_m <= MAX_GOAL_ALTITUDE_M:
+        return (f"goal altitude {altitude_m:g} m (D = {goal[2]:g}) is outside {MIN_GOAL_ALTITUDE_M:g} to "
+                f"{MAX_GOAL_ALTITUDE_M:g} m above home")
+    origin = np.zeros(3) if from_ned is None else np.asarray(from_ned, dtype=np.float64)
+    distance_m = float(np.hypot(goal[0] - origin[0], goal[1] - origin[1]))
+    if not distance_m <= MAX_GOAL_DISTANCE_M:
+        where = "home" if from_ned is None else "the vehicle"
+        return f"goal is {distance_m:.6g} m from {where} horizontally (max {MAX_GOAL_DISTANCE_M:g} m)"
+    return None

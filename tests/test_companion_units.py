@@ -99,7 +99,7 @@ def test_a_wider_camera_is_cropped_to_the_policy_fov():
 
 
 @pytest.mark.parametrize("frame, message", [
-    (np.full((32, 32), np.nan, np.float32), "no finite pixel"),
+    (np.full((32, 32), np.nan, np.float32), "depth blinded: 100 % of pixels invalid"),
     (np.ones((32,), np.float32), "2-D"),
     (np.ones((32, 32), np.int32), "floating-point"),
     (np.ones((16, 16), np.float32), "smaller than the policy"),

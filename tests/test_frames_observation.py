@@ -106,7 +106,7 @@ def test_validate_depth_frame_rejects_malformed_frames():
         validate_depth_frame(np.zeros((4, 3)), spec)
     with pytest.raises(DepthFrameError, match="dtype"):
         validate_depth_frame(np.zeros((3, 4), dtype=np.uint16), spec)
-    with pytest.raises(DepthFrameError, match="no finite"):
+    with pytest.raises(DepthFrameError, match="depth blinded: 100 % of pixels invalid"):
         validate_depth_frame(np.full((3, 4), np.nan), spec)
 
 
