@@ -359,6 +359,12 @@ def _start_takeover(rig: Rig, tmp) -> None:
                         "--timeout", "150")
 
 
+def _start_landed(rig: Rig, tmp) -> None:
+    rig.start_vehicle("--airborne", "--start", "0,0,-3")
+    rig.start_companion(make_policy(tmp / "policy.pt"), "--goal", "3,0,-3", "--arm", "--takeoff", "3",
+                        "--land-on-arrival", "--timeout", "150")
+
+
 def _start_blind(rig: Rig, tmp) -> None:
     (elsewhere,) = free_udp_ports(1)  # the vehicle's own frames go nowhere: the test is the camera
     rig.start_vehicle("--airborne", "--start", "0,0,-3", "--depth-port", str(elsewhere))
@@ -377,7 +383,7 @@ def _start_slow(rig: Rig, tmp) -> None:
 def rigs(request, tmp_path_factory):
     # "slow" first: it times its policy before the other rigs load the CPU.
     pool = ScenarioPool(request, tmp_path_factory, {"slow": _start_slow, "takeover": _start_takeover,
-                                                    "blind": _start_blind})
+                                                    "blind": _start_blind, "landed": _start_landed})
     yield pool
     for rig in pool.rigs.values():
         if hasattr(rig, "feeder"):
@@ -449,6 +455,29 @@ def test_a_takeover_survives_a_link_outage(rigs):
     links = [r for r in records if r.get("event") == "link" and r["t"] > handed["t"]]
     assert [r.get("lost") for r in links] == [True, False], [r["message"] for r in links]
     assert "staying handed back" in links[0]["message"] and "staying handed back" in links[1]["message"]
+
+
+@scenario("landed")
+def test_a_landed_flight_stays_over_after_a_link_outage(rigs):
+    """A link blip after landing must not start a second flight (--arm): the companion stays landed, sends nothing."""
+    rig = rigs["landed"]
+    landed = rig.wait_for_event(lambda r: r.get("event") == "phase" and r.get("to") == "landed", 90.0, "landed")
+    gcs = GroundStation(rig.gcs_port)
+    gcs.wait_heartbeat()
+    with rig.procs:
+        assert gcs.command(MAV_CMD_INJECT_FAILURE, FAILURE_UNIT_MAVLINK_SIGNAL, FAILURE_OFF) == 0
+        time.sleep(3.0)  # longer than the 2 s link timeout
+        assert gcs.command(MAV_CMD_INJECT_FAILURE, FAILURE_UNIT_MAVLINK_SIGNAL, FAILURE_OK) == 0
+        rig.wait_for_event(lambda r: r.get("event") == "phase" and r.get("from") == "link_lost", 5.0, "link back")
+        time.sleep(3.0)  # the old code was streaming and arming again by now
+        assert rig.companion.poll() is None
+        gcs.close()
+    phases = [r["to"] for r in rig.companion_records() if r.get("event") == "phase" and r["t"] > landed["t"]]
+    assert phases == ["link_lost", "landed"], phases
+    after = [r for r in rig.companion_records() if r.get("kind") == "step" and r["t"] > landed["t"]]
+    assert after and not any(r["sent"] for r in after)
+    rearmed = [r for r in rig.vehicle_records() if r["event"] == "armed" and r["t"] > landed["t"]]
+    assert rearmed == []
 
 
 def _first_hold(rig: Rig, t_fault: float, reason: str) -> dict:
