@@ -170,6 +170,11 @@ class Proxy:
         self.onboard_frames: deque[bytes] = deque(maxlen=256)
         self.gcs_frames: list[bytes] = []
         self.forwarded = Counter()
+        # Issue 16 item 1's attack, timed by the proxy (it alone sees the real frames go by): while
+        # ``prefix_rng`` is set, a bare start byte + length goes out just before every real
+        # HEARTBEAT and before 1 in 10 other datagrams. Counted in ``prefixes``.
+        self.prefix_rng: random.Random | None = None
+        self.prefixes = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="fuzz-proxy", daemon=True)
 
@@ -216,6 +221,10 @@ class Proxy:
     def _route(self, sock: socket.socket, data: bytes, addr) -> None:
         if sock is self.vehicle_sock:  # vehicle -> companion
             self.vehicle_addr = addr
+            rng = self.prefix_rng
+            if rng is not None and (_is_heartbeat(data) or rng.random() < 0.1):
+                self.autopilot_sock.sendto(rng.choice((b"\xfd\xff", b"\xfe\xff", b"\xfd", data[:5])), self.companion_addr)
+                self.prefixes += 1
             self.autopilot_sock.sendto(data, self.companion_addr)
             self.forwarded["to_companion"] += 1
             self.onboard_frames.append(data)
@@ -235,6 +244,13 @@ class Proxy:
             self._thread.join(timeout=2)
         for sock in (self.vehicle_sock, self.autopilot_sock, self.gcs_sock):
             sock.close()
+
+
+def _is_heartbeat(data: bytes) -> bool:
+    """Whether a datagram starts with a MAVLink 1 or 2 HEARTBEAT (message id 0)."""
+    if len(data) >= 10 and data[0] == 0xFD:
+        return data[7] == data[8] == data[9] == 0
+    return len(data) >= 6 and data[0] == 0xFE and data[5] == 0
 
 
 # --------------------------------------------------------------------------- the companion's log
@@ -481,7 +497,13 @@ class Fuzzer:
             t0, w0 = time.monotonic(), time.time()
             if phase == "mavlink":
                 gen = fi.MavlinkFuzzer(self.rng, self.rig.proxy.onboard)
-                self._inject(phase, counts[phase], budgets[phase], gen, self.rig.companion_port, progress)
+                proxy = self.rig.proxy
+                proxy.prefix_rng = random.Random(self.rng.getrandbits(32))
+                try:
+                    self._inject(phase, counts[phase], budgets[phase], gen, self.rig.companion_port, progress)
+                finally:
+                    proxy.prefix_rng = None
+                self.inputs[f"{phase}/start_before_real_frame"] += proxy.prefixes
                 self._window(phase, t0, w0, SETTLE_AFTER_MAVLINK_S)
             elif phase == "signing":
                 gen = fi.SigningFuzzer(self.rng, self.rig.proxy.onboard, self.rig.proxy.gcs)
@@ -763,15 +785,17 @@ def findings(report: dict) -> list[str]:
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--inputs", type=_positive_int, metavar="N",
-                        help="MAVLink/signing/depth inputs in all (default 100000; 3000 with --smoke)")
+                        help="MAVLink/signing/depth inputs in all (default 100000; 4000 with --smoke)")
     parser.add_argument("--seconds", type=_positive_float, metavar="S",
                         help="most seconds of injection in all (default: 1.5 x inputs / rate + 5)")
-    parser.add_argument("--rate", type=_positive_float, default=2000.0, metavar="HZ",
-                        help="injection rate in inputs/s (default 2000: robustness, not CPU starvation)")
+    parser.add_argument("--rate", type=_positive_float, metavar="HZ",
+                        help="injection rate in inputs/s (default 2000, 800 with --smoke: robustness, not CPU starvation)")
     parser.add_argument("--models", type=_nonnegative_int, metavar="M",
                         help="hostile model files to try (default 24; 3 with --smoke)")
     parser.add_argument("--signing", action="store_true", help="vehicle and companion sign; add forged/replayed traffic")
-    parser.add_argument("--smoke", action="store_true", help="a short run for CI (3000 inputs, 3 models)")
+    parser.add_argument("--smoke", action="store_true",
+                        help="a short run for CI: 4000 inputs at 800/s (the MAVLink phase lasts 3 s, longer than "
+                             "the 2 s link timeout), 3 models")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument("--start-timeout", type=_positive_float, default=60.0, metavar="S",
                         help="most seconds for a vehicle + companion to start flying (default 60)")
@@ -780,7 +804,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--workdir", metavar="DIR", help="keep logs and model files here (default: a temporary folder)")
     args = parser.parse_args(argv)
     if args.inputs is None:
-        args.inputs = 3000 if args.smoke else 100_000
+        args.inputs = 4000 if args.smoke else 100_000
+    if args.rate is None:
+        args.rate = 800.0 if args.smoke else 2000.0
     if args.models is None:
         args.models = 3 if args.smoke else 24
     if args.seconds is None:
