@@ -28,7 +28,14 @@ After the mavlink and signing phases the harness waits the link timeout (2 s) + 
 link loss they caused is counted. If the companion is not flying when a phase starts (it
 lost the link, handed back or died), a fresh vehicle + companion pair is started for it.
 
-The last line of output is one JSON object (see ``README`` of the keys in :func:`report`).
+The last line of output is one JSON object: ``inputs_sent`` / ``inputs_by_phase`` /
+``inputs_by_kind``, ``rate_inputs_per_s``, ``crashes`` (companion exited or a traceback on its
+stderr), ``setpoints_checked`` / ``setpoints_out_of_bounds`` / ``setpoints_non_finite`` (on the
+wire), ``link_drops`` (``link_lost`` while or up to 2.5 s after fuzzing), ``holds_by_phase``
+(hold episodes and steps by reason), ``mavlink_phase_hold_findings``, ``goals_accepted_by_phase``,
+``depth_steps_flown_on_refusable_frames`` (policy steps flown on a blinded, dead, stale or
+foreign frame, told by its ``seq``), ``depth_probes``, ``replies_to_foreign_senders``,
+``signing_behaviour_changes`` (``--signing``), ``models``, ``rig_restarts`` and ``findings``.
 Targets (issue 16) at 100,000 inputs: 0 crashes, 0 setpoints out of bounds, 0 non-finite
 setpoints, 0 link drops from malformed/unauthenticated input; with ``--signing`` 0 behaviour
 changes from forged/replayed traffic. ``findings`` lists every miss; the exit status is 0
@@ -494,6 +501,8 @@ class Fuzzer:
             if counts.get(phase, 0) <= 0:
                 continue
             self._ensure_flying(phase)
+            if not self.args.smoke:
+                print(f"fuzz: phase {phase}: {counts[phase]} inputs at {self.args.rate:g}/s", file=sys.stderr)
             t0, w0 = time.monotonic(), time.time()
             if phase == "mavlink":
                 gen = fi.MavlinkFuzzer(self.rng, self.rig.proxy.onboard)
@@ -767,6 +776,9 @@ def findings(report: dict) -> list[str]:
     if report["depth_steps_flown_on_refusable_frames"]:
         out.append(f"{report['depth_steps_flown_on_refusable_frames']} step(s) flown on blinded/stale/foreign depth "
                    f"frames: {report['depth_flown_on_refusable_by_kind']}")
+    if report["replies_to_foreign_senders"]:
+        out.append(f"the companion sent {report['replies_to_foreign_senders']} datagram(s) to "
+                   f"{report['foreign_senders_answered']} foreign sender(s) (not its autopilot)")
     if report.get("signing_behaviour_changes"):
         out.append(f"{report['signing_behaviour_changes']} behaviour change(s) from forged/replayed traffic: "
                    f"{report['signing_behaviour_changes_by_kind']}")
@@ -866,7 +878,7 @@ def main(argv: list[str] | None = None) -> int:
         from tqdm import tqdm
 
         progress = tqdm(total=sum(counts.values()), desc="fuzz", unit="input", file=sys.stderr,
-                        disable=args.smoke or not sys.stderr.isatty(), mininterval=1.0)
+                        disable=args.smoke, mininterval=1.0 if sys.stderr.isatty() else 5.0)
     except ImportError:
         pass
     model_result: dict = {}
