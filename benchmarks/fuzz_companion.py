@@ -163,8 +163,8 @@ class Proxy:
 
     ``autopilot_sock`` is what the companion knows as its autopilot: everything the vehicle
     sends leaves from it, and the harness injects "from the autopilot" through it too.
-    It also listens on the vehicle's ground-station port and keeps the first signed frames
-    sent there (before takeoff) for replay.
+    It also listens on the vehicle's ground-station port and keeps the first HEARTBEATs sent
+    there (before the companion engages: not OFFBOARD) for replay.
     """
 
     def __init__(self, vehicle_port: int, companion_port: int, gcs_port: int, checker: SetpointChecker) -> None:
@@ -176,6 +176,9 @@ class Proxy:
         self.vehicle_addr: tuple[str, int] | None = None
         self.onboard_frames: deque[bytes] = deque(maxlen=256)
         self.gcs_frames: list[bytes] = []
+        # Only HEARTBEATs from before the companion engages (the vehicle not in OFFBOARD): a later,
+        # OFFBOARD one replayed first would make every older one "old" to the signing check.
+        self.capture_gcs = True
         self.forwarded = Counter()
         # Issue 16 item 1's attack, timed by the proxy (it alone sees the real frames go by): while
         # ``prefix_rng`` is set, a bare start byte + length goes out just before every real
@@ -242,8 +245,8 @@ class Proxy:
             if self.vehicle_addr is not None:
                 self.vehicle_sock.sendto(data, self.vehicle_addr)
                 self.forwarded["to_vehicle"] += 1
-        elif len(self.gcs_frames) < 64:  # the vehicle's ground-station link, before takeoff
-            self.gcs_frames.append(data)
+        elif self.capture_gcs and len(self.gcs_frames) < 16 and _is_heartbeat(data) and data[5:7] == b"\x01\x01":
+            self.gcs_frames.append(data)  # the autopilot's own (1/1), not the companion's the vehicle routes there
 
     def stop(self) -> None:
         self._stop.set()
@@ -322,6 +325,7 @@ class Rig:
         self.started_s = time.monotonic()
         self.flying_after_s: float | None = None
         self.stopped_on_purpose = False
+        self.exit_recorded = False  # an unexpected companion exit is counted once
 
     def wait_flying(self, timeout_s: float) -> None:
         """Until the policy flies (phase flying_to_goal and a step sent forward); raise on failure."""
@@ -332,6 +336,7 @@ class Rig:
                     r.get("kind") == "step" and r.get("phase") == "flying_to_goal" and r.get("sent")
                     and not r.get("hold") and (r.get("cmd") or [0])[0] > 0.3 for r in self.log.records[-20:]):
                 self.flying_after_s = round(time.monotonic() - self.started_s, 2)
+                self.proxy.capture_gcs = False
                 return
             if self.companion.poll() is not None or self.vehicle.poll() is not None:
                 break
@@ -420,11 +425,11 @@ class Fuzzer:
 
     def _check_alive(self, rig: Rig) -> None:
         """Record an unexpected exit of the companion (once per rig)."""
-        if rig.stopped_on_purpose or getattr(rig, "_exit_recorded", False):
+        if rig.stopped_on_purpose or rig.exit_recorded:
             return
         code = rig.companion.poll()
         if code is not None:
-            rig._exit_recorded = True
+            rig.exit_recorded = True
             tail = rig.stderr_tail("companion").strip().splitlines()[-1:]
             self.crashes.append({"process": "companion", "rig": self.rigs.index(rig), "what": f"exited {code}",
                                  "last_line": tail[0] if tail else ""})
@@ -434,7 +439,8 @@ class Fuzzer:
             self._new_rig("")
         elif not self.rig.flying():
             self._check_alive(self.rig)
-            self._new_rig(f"before {phase}: companion {'exited' if self.rig.companion.poll() is not None else self.rig.log.phase}")
+            state = "exited" if self.rig.companion.poll() is not None else self.rig.log.phase
+            self._new_rig(f"before {phase}: companion {state}")
 
     # ------------------------------------------------------------------ injection
     def _housekeeping(self) -> None:
@@ -497,29 +503,38 @@ class Fuzzer:
 
     # ------------------------------------------------------------------ phases
     def run_flight_phases(self, counts: dict[str, int], budgets: dict[str, float], progress) -> None:
-        for phase in ("mavlink", "signing", "depth"):
-            if counts.get(phase, 0) <= 0:
+        only = self.args.kinds
+        onboard = lambda: self.rig.proxy.onboard()  # noqa: E731 - the current rig's captures
+        gcs = lambda: self.rig.proxy.gcs()  # noqa: E731
+        generators = {
+            "mavlink": fi.MavlinkFuzzer(self.rng, onboard),
+            "signing": fi.SigningFuzzer(self.rng, onboard, gcs),
+            "depth": _TaggingDepthFuzzer(fi.DepthFuzzer(self.rng, 32, 32, 90.0, 20.0), self.refusable_seqs),
+        }
+        for phase, gen in generators.items():
+            prefix = phase == "mavlink" and (only is None or "start_before_real_frame" in only)
+            if counts.get(phase, 0) <= 0 or not (gen.restrict(only) or prefix):
                 continue
             self._ensure_flying(phase)
             if not self.args.smoke:
                 print(f"fuzz: phase {phase}: {counts[phase]} inputs at {self.args.rate:g}/s", file=sys.stderr)
             t0, w0 = time.monotonic(), time.time()
             if phase == "mavlink":
-                gen = fi.MavlinkFuzzer(self.rng, self.rig.proxy.onboard)
                 proxy = self.rig.proxy
-                proxy.prefix_rng = random.Random(self.rng.getrandbits(32))
+                proxy.prefix_rng = random.Random(self.rng.getrandbits(32)) if prefix else None
                 try:
-                    self._inject(phase, counts[phase], budgets[phase], gen, self.rig.companion_port, progress)
+                    if gen.restrict(only):
+                        self._inject(phase, counts[phase], budgets[phase], gen, self.rig.companion_port, progress)
+                    else:  # only the proxy's prefixes: let them run as long as the phase would
+                        time.sleep(min(budgets[phase], counts[phase] / self.args.rate))
                 finally:
                     proxy.prefix_rng = None
                 self.inputs[f"{phase}/start_before_real_frame"] += proxy.prefixes
                 self._window(phase, t0, w0, SETTLE_AFTER_MAVLINK_S)
             elif phase == "signing":
-                gen = fi.SigningFuzzer(self.rng, self.rig.proxy.onboard, self.rig.proxy.gcs)
                 self._inject(phase, counts[phase], budgets[phase], gen, self.rig.companion_port, progress)
                 self._window(phase, t0, w0, SETTLE_AFTER_MAVLINK_S)
             else:
-                gen = _TaggingDepthFuzzer(fi.DepthFuzzer(self.rng, 32, 32, 90.0, 20.0), self.refusable_seqs)
                 self._inject(phase, counts[phase], budgets[phase], gen, self.rig.depth_port, progress)
                 self._window(phase, t0, w0, SETTLE_AFTER_DEPTH_S)
                 self._depth_probes(gen)
@@ -527,8 +542,10 @@ class Fuzzer:
             self._retire_rig()
 
     def _depth_probes(self, gen: _TaggingDepthFuzzer) -> None:
-        """Half a second of one refusable kind each, faster than the camera, so it is what the policy sees."""
+        """Short bursts of one refusable kind each, faster than the camera, so they are what the policy sees."""
         for kind in PROBE_KINDS:
+            if self.args.kinds is not None and kind not in self.args.kinds:
+                continue
             self._ensure_flying(f"probe {kind}")
             t0, w0 = time.monotonic(), time.time()
             probe = _OneKind(gen, kind)
@@ -575,7 +592,8 @@ class Fuzzer:
             self.inputs[f"model/{name.split(':')[0]}"] += 1
             last = stderr.strip().splitlines()[-1] if stderr.strip() else ""
             results.append({"mutation": name, "exit": code, "traceback": traceback, "last_line": last[:200]})
-        not_refused = [r for r in results if r["exit"] != 3 or r["traceback"]]
+        # Refused = exit 3, no traceback, and the last line is the companion's own one-line reason.
+        not_refused = [r for r in results if r["exit"] != 3 or r["traceback"] or not r["last_line"].startswith("companion:")]
         return {"mutants": len(results), "exit_codes": dict(exit_codes), "tracebacks": tracebacks,
                 "refused_with_exit_3": len(results) - len(not_refused), "not_refused": not_refused}
 
@@ -702,6 +720,9 @@ class _TaggingDepthFuzzer:
     def __init__(self, inner: fi.DepthFuzzer, seqs: dict[int, str]) -> None:
         self.inner, self.seqs = inner, seqs
 
+    def restrict(self, only: set[str] | None) -> bool:
+        return self.inner.restrict(only)
+
     def _tag(self, kind: str) -> None:
         if kind in fi.DepthFuzzer.REFUSABLE:
             self.seqs[fi.REFUSABLE_SEQ_BASE + self.inner.refusable_count] = kind
@@ -809,12 +830,21 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         help="a short run for CI: 4000 inputs at 800/s (the MAVLink phase lasts 3 s, longer than "
                              "the 2 s link timeout), 3 models")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    parser.add_argument("--kinds", metavar="K1,K2", type=lambda t: set(filter(None, t.split(","))),
+                        help="send only these input kinds (to reproduce one fault), e.g. replay_other_link")
     parser.add_argument("--start-timeout", type=_positive_float, default=60.0, metavar="S",
                         help="most seconds for a vehicle + companion to start flying (default 60)")
     parser.add_argument("--model-timeout", type=_positive_float, default=60.0, metavar="S",
                         help="most seconds for one companion run on a hostile model (default 60)")
     parser.add_argument("--workdir", metavar="DIR", help="keep logs and model files here (default: a temporary folder)")
     args = parser.parse_args(argv)
+    if args.kinds is not None:
+        known = fi.all_kinds() | {"start_before_real_frame"}
+        unknown = sorted(args.kinds - known)
+        if unknown or not args.kinds:
+            parser.error(f"--kinds: unknown kind(s) {unknown}; known: {', '.join(sorted(known))}")
+        if not args.signing and args.kinds <= fi.SIGNING_KINDS:
+            parser.error("--kinds: these kinds need --signing")
     if args.inputs is None:
         args.inputs = 4000 if args.smoke else 100_000
     if args.rate is None:

@@ -87,7 +87,28 @@ def _payload_size(msgid: int) -> int:
     return mavlink.mavlink_map[msgid].unpacker.size
 
 
-class MavlinkFuzzer:
+class _KindMix:
+    """A weighted mix of input kinds (``kinds``: name, weight) that ``--kinds`` can narrow."""
+
+    kinds: list[tuple[str, int]]
+    rng: random.Random
+
+    def _init_mix(self) -> None:
+        self._names = [k for k, _ in self.kinds]
+        self._weights = [w for _, w in self.kinds]
+
+    def restrict(self, only: set[str] | None) -> bool:
+        """Keep only the kinds in ``only`` (all with None); return whether any is left."""
+        if only is not None:
+            kept = [(k, w) for k, w in self.kinds if k in only]
+            self._names, self._weights = [k for k, _ in kept], [w for _, w in kept]
+        return bool(self._names)
+
+    def pick(self) -> str:
+        return self.rng.choices(self._names, self._weights)[0]
+
+
+class MavlinkFuzzer(_KindMix):
     """Malformed and hostile MAVLink datagrams toward the companion.
 
     Args:
@@ -108,8 +129,7 @@ class MavlinkFuzzer:
             ("fake_signature_flag", 3), ("heartbeat_foreign", 8), ("telemetry_hostile", 10), ("command_ack", 4),
             ("goal_out_of_range", 6), ("statustext_junk", 4), ("junk_then_frame", 3),
         ]
-        self._names = [k for k, _ in self.kinds]
-        self._weights = [w for _, w in self.kinds]
+        self._init_mix()
 
     # ------------------------------------------------------------------ helpers
     def _next_seq(self) -> int:
@@ -141,7 +161,7 @@ class MavlinkFuzzer:
 
     # ------------------------------------------------------------------ the kinds
     def next(self) -> Datagram:
-        kind = self.rng.choices(self._names, self._weights)[0]
+        kind = self.pick()
         return getattr(self, "_" + kind)(kind)
 
     def _random_bytes(self, kind: str) -> Datagram:
@@ -212,10 +232,9 @@ class MavlinkFuzzer:
 
     def _heartbeat_foreign(self, kind: str) -> Datagram:
         """A HEARTBEAT with a random mode from another system (never the autopilot's own ids)."""
-        msg = self.mav.heartbeat_encode(self.rng.choice([2, 1, 13, 6, 18, self.rng.randint(0, 255)]),
-                                        self.rng.choice([12, 3, 8, self.rng.randint(0, 255)]),
-                                        self.rng.randint(0, 255), self.rng.choice(_PX4_CUSTOM_MODES + (self.rng.getrandbits(32),)),
-                                        self.rng.randint(0, 8))
+        r = self.rng
+        msg = self.mav.heartbeat_encode(r.choice([2, 1, 13, 6, 18, r.randint(0, 255)]), r.choice([12, 3, 8, r.randint(0, 255)]),
+                                        r.randint(0, 255), r.choice(_PX4_CUSTOM_MODES + (r.getrandbits(32),)), r.randint(0, 8))
         sysid = self.rng.randint(2, 254)
         compid = self.rng.choice([1, self.rng.randint(0, 255)])
         return Datagram(kind, self._pack(msg, sysid, compid, v1=self.rng.random() < 0.2), self._sender())
@@ -271,7 +290,7 @@ class MavlinkFuzzer:
         return Datagram(kind, junk + self._valid_frame(), self._sender(0.3))
 
 
-class SigningFuzzer:
+class SigningFuzzer(_KindMix):
     """Forged (wrong key), replayed and unsigned traffic for a companion with MAVLink 2 signing.
 
     Args:
@@ -291,11 +310,10 @@ class SigningFuzzer:
         self.plain = mavlink.MAVLink(None, srcSystem=AUTOPILOT_IDS[0], srcComponent=AUTOPILOT_IDS[1])
         self.kinds = [("forged_autopilot", 8), ("forged_near_max_timestamp", 3), ("forged_foreign_streams", 4),
                       ("replay_same_link", 6), ("replay_other_link", 6), ("unsigned_autopilot", 6)]
-        self._names = [k for k, _ in self.kinds]
-        self._weights = [w for _, w in self.kinds]
+        self._init_mix()
 
     def next(self) -> Datagram:
-        kind = self.rng.choices(self._names, self._weights)[0]
+        kind = self.pick()
         return getattr(self, "_" + kind)(kind)
 
     def _message(self, mav):
@@ -351,7 +369,7 @@ class SigningFuzzer:
         return Datagram(kind, self._message(self.plain).pack(self.plain), self.rng.choice(["autopilot", "foreign"]))
 
 
-class DepthFuzzer:
+class DepthFuzzer(_KindMix):
     """Hostile depth datagrams (format: :mod:`companion.depth_wire`) for the companion's depth port.
 
     Args:
@@ -379,8 +397,7 @@ class DepthFuzzer:
             ("some_nan", 3), ("huge_pixels", 3), ("wrong_vehicle", 5), ("stale_stamp", 5), ("future_stamp", 3),
             ("uint16_zero", 3), ("tiny_frame", 2),
         ]
-        self._names = [k for k, _ in self.kinds]
-        self._weights = [w for _, w in self.kinds]
+        self._init_mix()
 
     def _seq(self, refusable: bool) -> int:
         if refusable:
@@ -411,7 +428,7 @@ class DepthFuzzer:
         return struct.pack(f"<{self.height * self.width}f", *([self.max_range_m] * (self.height * self.width)))
 
     def next(self) -> Datagram:
-        kind = self.rng.choices(self._names, self._weights)[0]
+        kind = self.pick()
         return Datagram(kind, self.make(kind), "foreign")
 
     def make(self, kind: str) -> bytes:
@@ -551,3 +568,14 @@ def model_mutations(rng: random.Random, count: int) -> list[tuple[str, tuple, ob
         value = rng.choice(_RANDOM_VALUES)
         out.append((f"random:{'.'.join(path)}={value!r}"[:80], path, value))
     return out
+
+
+def all_kinds() -> set[str]:
+    """Every input kind of the MAVLink, signing and depth mixes."""
+    rng = random.Random(0)
+    mixes = (MavlinkFuzzer(rng, list), SigningFuzzer(rng, list, list), DepthFuzzer(rng, 32, 32, 90.0, 20.0))
+    return {k for mix in mixes for k, _ in mix.kinds}
+
+
+#: The kinds only a signing run sends.
+SIGNING_KINDS = frozenset(k for k, _ in SigningFuzzer(random.Random(0), list, list).kinds)
