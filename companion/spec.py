@@ -134,8 +134,25 @@ class CameraSpec:
         return asdict(self)
 
 
+@dataclass(frozen=True)
+class TaskSpec:
+    """The task a policy is trained for and flown on: what counts as a collision, an arrival, a time-out.
+
+    The simulator, the trainer, the evaluation and the companion all read these values from
+    here (and a policy file records the ones it was trained with in ``policy.json``'s ``task``).
+    """
+
+    collision_radius_m: float = 0.3  # R: an F450-class quadrotor with props (0.6 m tip to tip); UAVs collide within 2R
+    arrival_radius_m: float = 0.5  # paper: arrival within 0.5 m of the goal
+    max_episode_steps: int = 400  # episode time limit in control periods (40 s at 10 Hz)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
 DEFAULT_ACTION_SPEC = ActionSpec()
 DEFAULT_CAMERA_SPEC = CameraSpec()
+DEFAULT_TASK_SPEC = TaskSpec()
 
 
 
