@@ -86,6 +86,10 @@ def min_pool_depth(depth_m: np.ndarray, out_height: int, out_width: int, max_ran
     Invalid pixels (0, negative or non-finite: a stereo camera's "no data") are ignored;
     a block with no valid pixel reads ``max_range_m``. Values are clipped to ``max_range_m``.
     Source sizes that are not multiples of the output use the nearest block boundaries.
+
+    A single frame [H, W] goes through OpenCV when it is installed (``swarmnav[realsense]``;
+    about 2x faster on a 848x480 frame, ``benchmarks/depth_preprocess.py``), with a result
+    identical to the numpy path, which the base install uses.
     """
     depth_m = np.asarray(depth_m, dtype=np.float32)
     if depth_m.ndim < 2:
@@ -95,16 +99,70 @@ def min_pool_depth(depth_m: np.ndarray, out_height: int, out_width: int, max_ran
         raise DepthFrameError(
             f"depth frame {height}x{width} is smaller than the policy's {out_height}x{out_width}"
         )
+    cv2 = _opencv()
+    if cv2 is not None and depth_m.ndim == 2:
+        return _min_pool_depth_opencv(cv2, depth_m, out_height, out_width, max_range_m)
+    return _min_pool_depth_numpy(depth_m, out_height, out_width, max_range_m)
+
+
+_OPENCV_UNSET = object()
+_opencv_module: object = _OPENCV_UNSET
+
+
+def _opencv():
+    """The cv2 module, or None when OpenCV is not installed (imported on first use: it is heavy)."""
+    global _opencv_module
+    if _opencv_module is _OPENCV_UNSET:
+        try:
+            import cv2  # noqa: PLC0415 - optional fast path, not in the base install
+        except ImportError:
+            cv2 = None
+        _opencv_module = cv2
+    return _opencv_module
+
+
+def _block_edges(size: int, out_size: int) -> np.ndarray:
+    """The nearest block boundaries, [out_size + 1] ints from 0 to ``size``."""
+    return np.linspace(0, size, out_size + 1).round().astype(int)
+
+
+def _min_pool_depth_numpy(depth_m: np.ndarray, out_height: int, out_width: int, max_range_m: float) -> np.ndarray:
+    """:func:`min_pool_depth` in numpy, for any leading batch axes."""
+    height, width = depth_m.shape[-2:]
     valid = np.isfinite(depth_m) & (depth_m > 0)
     cleaned = np.where(valid, np.minimum(depth_m, max_range_m), np.float32(max_range_m))
     if height % out_height == 0 and width % out_width == 0:
         fy, fx = height // out_height, width // out_width
         blocks = cleaned.reshape(cleaned.shape[:-2] + (out_height, fy, out_width, fx))
         return blocks.min(axis=(-3, -1)).astype(np.float32)
-    row_edges = np.linspace(0, height, out_height + 1).round().astype(int)
-    col_edges = np.linspace(0, width, out_width + 1).round().astype(int)
+    row_edges, col_edges = _block_edges(height, out_height), _block_edges(width, out_width)
     rows = np.minimum.reduceat(cleaned, row_edges[:-1], axis=-2)
     return np.minimum.reduceat(rows, col_edges[:-1], axis=-1).astype(np.float32)
+
+
+def _min_pool_depth_opencv(cv2, depth_m: np.ndarray, out_height: int, out_width: int, max_range_m: float) -> np.ndarray:
+    """:func:`min_pool_depth` of one float32 frame [H, W] with OpenCV, identical to the numpy path.
+
+    Resizing (area, bilinear) averages and would blur a thin obstacle away; a min-pool is an
+    erosion sampled per block. The blocks are ``k`` or ``k + 1`` pixels, so one erosion with
+    a ``kh x kw`` window anchored at its top-left corner, read at the four windows that start
+    at a block's corners, covers each block exactly.
+    """
+    height, width = depth_m.shape
+    cleaned = depth_m.copy()
+    cv2.patchNaNs(cleaned, max_range_m)
+    cleaned = cv2.min(cleaned, max_range_m)  # +inf and far returns read max_range_m
+    _, invalid = cv2.threshold(cleaned, 0.0, max_range_m, cv2.THRESH_BINARY_INV)  # max where <= 0, else 0
+    cleaned = cv2.max(cleaned, invalid)  # 0, negative and -inf read max_range_m
+    row_edges, col_edges = _block_edges(height, out_height), _block_edges(width, out_width)
+    kh, kw = int(np.diff(row_edges).min()), int(np.diff(col_edges).min())
+    # eroded[y, x] = min of cleaned[y : y + kh, x : x + kw]; only windows inside the frame are read.
+    eroded = cv2.erode(cleaned, np.ones((kh, kw), np.uint8), anchor=(0, 0), borderType=cv2.BORDER_REPLICATE)
+    r0, r1 = row_edges[:-1], row_edges[1:] - kh
+    c0, c1 = col_edges[:-1], col_edges[1:] - kw
+    out = np.minimum(np.minimum(eroded[np.ix_(r0, c0)], eroded[np.ix_(r0, c1)]),
+                     np.minimum(eroded[np.ix_(r1, c0)], eroded[np.ix_(r1, c1)]))
+    return out.astype(np.float32)
 
 
 def crop_to_hfov(depth_m: np.ndarray, source_hfov_deg: float, target: CameraSpec) -> np.ndarray:
