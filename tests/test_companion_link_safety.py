@@ -1,7 +1,7 @@
 """The companion's MAVLink endpoint under hostile traffic (issue 16, items 1-3 and 10-13).
 
 Each test drives the real :class:`companion.mavlink_link.AutopilotLink` over real UDP sockets
-on 127.0.0.1, with the simulator's own MAVLink endpoint (:class:`sitl.mavlink_autopilot.MavlinkUdpLink`)
+on 127.0.0.1, with the simulator's own MAVLink endpoint (:class:`sitl.realtime.mavlink_autopilot.MavlinkUdpLink`)
 as the autopilot and plain sockets as the attacker; the odometry test flies the real vehicle and
 companion processes with a relay on the wire that corrupts ODOMETRY. All bounded in time.
 """
@@ -20,7 +20,7 @@ import pytest
 
 from companion.mavlink_endpoint import MAX_SIGNING_STREAMS, mavlink
 from companion.mavlink_link import AutopilotLink, LinkError, OdometryInvalid, odometry_from_msg
-from sitl.mavlink_autopilot import MavlinkUdpLink
+from sitl.realtime.mavlink_autopilot import MavlinkUdpLink
 from tests.companion_helpers import CONTROL_PERIOD_S, REPO, Processes, Rig, env, free_udp_ports, make_policy
 
 pytestmark = pytest.mark.timeout(120)

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sitl.mavlink_swarm import _records_from_trace
+from sitl.realtime.mavlink_swarm import _records_from_trace
 from sitl.scenarios import ScenarioSample
 from tests.companion_helpers import REPO, env, free_udp_blocks, udp_port_free
 
