@@ -175,6 +175,10 @@ class Odometry:
     source: str
 
 
+class OdometryInvalid(ValueError):
+    """Telemetry whose values cannot be a vehicle state (non-finite or out of range)."""
+
+
 def _check_finite_in_range(source: str, what: str, values, limit: float) -> None:
     """Raise :class:`OdometryInvalid` naming ``source`` and ``what`` if a value is NaN/inf or beyond ``limit``."""
     array = np.asarray(values, dtype=np.float64)

@@ -36,47 +36,34 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
-import os
-import select
-import signal
-import socket
 import sys
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
-os.environ["MAVLINK20"] = "1"  # before pymavlink loads: MAVLink 2, like the companion
-
-from pymavlink import mavutil  # noqa: E402
-from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
-
-from companion.flight_modes import MAV_AUTOPILOT_INVALID, AutopilotKind  # noqa: E402
-from companion.mavlink_link import normalize_connection  # noqa: E402
-from companion.spec import CameraSpec  # noqa: E402
-from sitl.camera import LANDED_CAMERA_HEIGHT_M, DepthCamera  # noqa: E402
+from companion.flight_modes import MAV_AUTOPILOT_INVALID, AutopilotKind
+from companion.frames import geodetic_to_ned, ned_to_geodetic
+from companion.mavlink_link import normalize_connection
 from sitl.cli_args import (
-    ArgumentParser,  # noqa: E402
-    MAX_CAMERA_HZ,
-    MAX_SUPERSAMPLE,
-    box,
-    check_camera,
+    ArgumentParser,
     check_port_block,
-    cylinder,
-    cylinder_rows,
     finite_float,
     finite_floats,
     float_range,
     host,
-    image_size,
     int_range,
     output_file,
     positive_float,
     positive_int,
     udp_port_nonzero,
 )
-from sitl.realtime.depth_transport import DepthFrameSender  # noqa: E402
-from sitl.realtime.event_log import EventLog  # noqa: E402
+from sitl.realtime.camera_feed import CameraConfig, CameraFeed, add_camera_arguments, camera_config, check_camera_arguments
+from sitl.realtime.event_log import EventLog
+from sitl.realtime.loop import serve
+from sitl.realtime.udp_endpoint import MavlinkUdpEndpoint, mavlink
+
+from pymavlink import mavutil  # noqa: E402  (after companion.mavlink_endpoint: MAVLink 2)
 
 POSE_TIMEOUT_S = 0.5  # older telemetry: no frames for that vehicle, and it is not drawn
 HEARTBEAT_PERIOD_S = 1.0
@@ -84,7 +71,6 @@ STREAM_CHECK_PERIOD_S = 5.0  # ask for the streams again while they come at unde
 ORIGIN_REQUEST_PERIOD_S = 2.0
 REOPEN_PERIOD_S = 2.0  # retry a --connect link that cannot be opened or dropped
 RECONNECTED_AFTER_S = 3.0  # a heartbeat after this much silence is logged as a new connection
-EARTH_RADIUS_M = 6_371_000.0  # PX4's CONSTANTS_RADIUS_OF_EARTH, what it projects its local frame with
 MAV_COMP_ID_MISSIONPLANNER = 190  # a ground station's component id
 MAV_DATA_STREAM_POSITION = 6  # ArduPilot stream groups: LOCAL_POSITION_NED is in POSITION,
 MAV_DATA_STREAM_EXTRA1 = 10  # ATTITUDE in EXTRA1
@@ -99,21 +85,19 @@ GlobalPoint = tuple[float, float, float]  # latitude deg, longitude deg, altitud
 
 
 def ned_offset_m(ref: GlobalPoint, point: GlobalPoint) -> np.ndarray:
-    """North/east offset in metres of ``point`` from ``ref`` (flat earth); down is 0.
+    """North/east offset in metres of ``point`` from ``ref`` (:func:`companion.frames.geodetic_to_ned`); down is 0.
 
     Down is 0 on purpose: every autopilot's local origin is where it started, on the ground,
     and the world has one flat ground at D = 0.
     """
-    north = math.radians(point[0] - ref[0]) * EARTH_RADIUS_M
-    east = math.radians(point[1] - ref[1]) * EARTH_RADIUS_M * math.cos(math.radians(ref[0]))
+    north, east, _ = geodetic_to_ned(np.array([point[0], point[1], 0.0]), ref[0], ref[1])
     return np.array([north, east, 0.0])
 
 
 def shift_global(point: GlobalPoint, north_m: float, east_m: float) -> GlobalPoint:
-    """``point`` moved by north/east metres (flat earth)."""
-    lat = point[0] + math.degrees(north_m / EARTH_RADIUS_M)
-    lon = point[1] + math.degrees(east_m / (EARTH_RADIUS_M * math.cos(math.radians(point[0]))))
-    return lat, lon, point[2]
+    """``point`` moved by north/east metres (:func:`companion.frames.ned_to_geodetic`)."""
+    lat, lon, _ = ned_to_geodetic(np.array([north_m, east_m, 0.0]), point[0], point[1])
+    return float(lat), float(lon), point[2]
 
 
 class Layout:
@@ -179,19 +163,6 @@ class Vehicle:
         return now_s - min(self.pos_s, self.att_s)
 
 
-class _UdpPeer:
-    """pymavlink's output ``file`` for one peer: each packed message goes to one address."""
-
-    def __init__(self, sock: socket.socket, addr: tuple[str, int]) -> None:
-        self.sock, self.addr = sock, addr
-
-    def write(self, buf: bytes) -> None:
-        try:
-            self.sock.sendto(buf, self.addr)
-        except OSError:
-            pass  # the instance is gone (ICMP port unreachable): its telemetry will go stale
-
-
 class Px4GcsPort:
     """The UDP port where every PX4 SITL instance sends its ground-station link (14550).
 
@@ -201,59 +172,26 @@ class Px4GcsPort:
     """
 
     def __init__(self, host: str, port: int, index_by_sysid: dict[int, int], own_sysid: int) -> None:
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            self.sock.bind((host, port))
-        except OSError:
-            self.sock.close()
-            raise
-        self.sock.setblocking(False)
-        self.index_by_sysid, self.own_sysid = index_by_sysid, own_sysid
-        self._parsers: dict[tuple[str, int], mavlink.MAVLink] = {}  # one per sender: no mixed partial packets
-        self._addr: dict[int, tuple[str, int]] = {}
-        self._senders: dict[int, mavlink.MAVLink] = {}
+        self.endpoint = MavlinkUdpEndpoint("gcs", (host, port), own_sysid, MAV_COMP_ID_MISSIONPLANNER)
+        self.index_by_sysid = index_by_sysid
+        self.sysid_by_index = {index: sysid for sysid, index in index_by_sysid.items()}
 
     def fileno(self) -> int:
-        return self.sock.fileno()
+        return self.endpoint.fileno()
 
     def receive(self) -> list[tuple[int | None, object]]:
         """Every waiting message, with the index of the vehicle it came from (None: unknown system)."""
-        out: list[tuple[int | None, object]] = []
-        for _ in range(5000):
-            try:
-                data, addr = self.sock.recvfrom(65535)
-            except (BlockingIOError, InterruptedError):
-                break
-            except OSError:
-                continue  # an ICMP error for something we sent to a vanished instance
-            parser = self._parsers.get(addr)
-            if parser is None:
-                parser = self._parsers[addr] = mavlink.MAVLink(None)
-                parser.robust_parsing = True
-            try:
-                msgs = parser.parse_buffer(data) or []
-            except mavlink.MAVError:
-                continue
-            for msg in msgs:
-                if msg.get_type() == "BAD_DATA":
-                    continue
-                index = self.index_by_sysid.get(msg.get_srcSystem())
-                if index is not None and self._addr.get(index) != addr:  # new, or the instance restarted
-                    self._addr[index] = addr
-                    self._senders[index] = mavlink.MAVLink(_UdpPeer(self.sock, addr), srcSystem=self.own_sysid,
-                                                           srcComponent=MAV_COMP_ID_MISSIONPLANNER)
-                out.append((index, msg))
-        return out
+        return [(self.index_by_sysid.get(msg.get_srcSystem()), msg) for msg in self.endpoint.receive()]
 
     def sender(self, index: int) -> mavlink.MAVLink | None:
         """The encoder that talks to vehicle ``index`` (None until it has been heard)."""
-        return self._senders.get(index)
+        return self.endpoint.encoder_for(self.sysid_by_index[index])
 
     def service(self, now_s: float, log: EventLog) -> None:
         pass  # a bound socket needs no upkeep
 
     def close(self) -> None:
-        self.sock.close()
+        self.endpoint.close()
 
 
 class VehicleConnection:
@@ -328,31 +266,56 @@ class VehicleConnection:
 # --------------------------------------------------------------------------- the world
 
 
-class DepthWorld:
-    """The vehicles, their links, the layout, the camera and the frame sender."""
+@dataclass(frozen=True)
+class DepthBridgeConfig:
+    """Which autopilots ``python -m sitl.world`` serves and how (its options, checked).
 
-    def __init__(self, args: argparse.Namespace, log: EventLog) -> None:
-        self.args, self.log = args, log
-        if args.px4:
-            first = args.px4_first_instance
+    Either ``px4_instances`` PX4 SITL instances (from ``px4_first_instance``; ground-station links
+    on ``gcs_host:gcs_port``) or one pymavlink ``connections`` string per vehicle.
+    ``offsets_ned`` [n, 3] m places each vehicle's local origin in the world frame (None: from the
+    autopilots' global origins). Vehicle ``i``'s frames go to ``host:depth_port + i`` (with PX4,
+    ``i`` is the instance).
+    """
+
+    px4_instances: int = 0
+    connections: tuple[str, ...] = ()
+    px4_first_instance: int = 0
+    gcs_host: str = "0.0.0.0"
+    gcs_port: int = 14550
+    offsets_ned: np.ndarray | None = None
+    host: str = "127.0.0.1"
+    depth_port: int = 14640
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    stream_rate_hz: float = 50.0
+    sysid: int = 250
+
+    def __post_init__(self) -> None:
+        if bool(self.px4_instances) == bool(self.connections):
+            raise ValueError("give either px4_instances or connections")
+
+
+class DepthBridge:
+    """Depth cameras for external autopilots: the vehicles, their links, the layout, the camera feed."""
+
+    def __init__(self, config: DepthBridgeConfig, log: EventLog) -> None:
+        self.config, self.log = config, log
+        if config.px4_instances:
+            first = config.px4_first_instance
             self.vehicles = [Vehicle(j, f"PX4 instance {first + j} (system id {first + j + 1}) on udp "
-                                        f"{args.gcs_host}:{args.gcs_port}", args.depth_port + first + j,
-                                     expected_sysid=first + j + 1) for j in range(args.px4)]
+                                        f"{config.gcs_host}:{config.gcs_port}", config.depth_port + first + j,
+                                     expected_sysid=first + j + 1) for j in range(config.px4_instances)]
             index_by_sysid = {v.expected_sysid: v.index for v in self.vehicles}
             self.links: list[Px4GcsPort | VehicleConnection] = [
-                Px4GcsPort(args.gcs_host, args.gcs_port, index_by_sysid, args.sysid)]
+                Px4GcsPort(config.gcs_host, config.gcs_port, index_by_sysid, config.sysid)]
             self.link_of = [self.links[0]] * len(self.vehicles)
         else:
-            self.vehicles = [Vehicle(j, normalize_connection(c), args.depth_port + j) for j, c in enumerate(args.connect)]
-            self.links = [VehicleConnection(j, c, args.sysid) for j, c in enumerate(args.connect)]
+            self.vehicles = [Vehicle(j, normalize_connection(c), config.depth_port + j)
+                             for j, c in enumerate(config.connections)]
+            self.links = [VehicleConnection(j, c, config.sysid) for j, c in enumerate(config.connections)]
             self.link_of = list(self.links)
         self.n = len(self.vehicles)
-        self.layout = Layout(args.offsets)
-        self.camera = DepthCamera(CameraSpec(width=args.camera_size[0], height=args.camera_size[1], hfov_deg=args.hfov,
-                                             max_range_m=args.max_range), supersample=args.supersample)
-        self.boxes = np.asarray(args.box, dtype=np.float64).reshape(1, -1, 6) if args.box else None
-        self.cylinders = np.asarray(args.cylinder, dtype=np.float64).reshape(1, -1, 5) if args.cylinder else None
-        self.sender = DepthFrameSender(args.host, self.vehicles[0].depth_port, self.n, args.hfov, args.max_range)
+        self.layout = Layout(config.offsets_ned)
+        self.feed = CameraFeed(config.camera, config.host, self.vehicles[0].depth_port, self.n)
         self.next_heartbeat_s = 0.0
         self.unknown_sysids: set[int] = set()
         self.render_ms: list[float] = []
@@ -367,6 +330,12 @@ class DepthWorld:
             if fd is not None:
                 out[fd] = link
         return out
+
+    def wake_s(self) -> float:
+        return math.inf  # nothing between messages, frames and status lines but link upkeep (at 10 Hz)
+
+    def tick(self, now_s: float) -> None:
+        self.service(now_s)
 
     def receive(self, link: Px4GcsPort | VehicleConnection, now_s: float) -> None:
         for index, msg in link.receive():
@@ -447,9 +416,9 @@ class DepthWorld:
                 first = not math.isfinite(v.streams_requested_s)
                 if not first:
                     v.pose_rate_hz = (v.pose_msgs - v.pose_msgs_at_check) / (now_s - v.streams_requested_s)
-                if first or v.pose_rate_hz < 0.5 * self.args.stream_rate:
+                if first or v.pose_rate_hz < 0.5 * self.config.stream_rate_hz:
                     self._request_streams(v, mav)
-                    self.log("streams_requested", vehicle=v.index, rate_hz=self.args.stream_rate,
+                    self.log("streams_requested", vehicle=v.index, rate_hz=self.config.stream_rate_hz,
                              measured_hz=None if first else round(v.pose_rate_hz, 1))
                 v.streams_requested_s, v.pose_msgs_at_check = now_s, v.pose_msgs
             if self.layout.from_origins and v.origin is None and now_s - v.origin_requested_s >= ORIGIN_REQUEST_PERIOD_S:
@@ -461,10 +430,10 @@ class DepthWorld:
         """LOCAL_POSITION_NED and ATTITUDE at the stream rate (per link, on both autopilots)."""
         if v.kind == AutopilotKind.ARDUPILOT.value:  # older ArduPilot knows only stream groups
             for stream in (MAV_DATA_STREAM_POSITION, MAV_DATA_STREAM_EXTRA1):
-                mav.request_data_stream_send(v.sysid, v.compid, stream, int(round(self.args.stream_rate)), 1)
+                mav.request_data_stream_send(v.sysid, v.compid, stream, int(round(self.config.stream_rate_hz)), 1)
         for msg_id in (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mavlink.MAVLINK_MSG_ID_ATTITUDE):
             mav.command_long_send(v.sysid, v.compid, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id,
-                                  1e6 / self.args.stream_rate, 0, 0, 0, 0, 0)
+                                  1e6 / self.config.stream_rate_hz, 0, 0, 0, 0, 0)
 
     # ------------------------------------------------------------------ rendering
     def _placed(self, v: Vehicle, now_s: float) -> tuple[np.ndarray | None, str]:
@@ -494,12 +463,7 @@ class DepthWorld:
                 positions.append(pos)
         if not rows:
             return
-        camera_ned = np.array(positions)
-        camera_ned[:, 2] = np.minimum(camera_ned[:, 2], -LANDED_CAMERA_HEIGHT_M)  # above the gear, as sitl.vehicle
-        yaw = np.array([v.yaw_rad for v in rows])
-        depth = self.camera.render(camera_ned, yaw, len(rows), boxes=self.boxes, cylinders=self.cylinders)
-        for k, v in enumerate(rows):
-            self.sender.send(v.index, depth[k])
+        self.feed.render_and_send([v.index for v in rows], np.array(positions), np.array([v.yaw_rad for v in rows]))
         self.render_ms.append((time.perf_counter() - started) * 1e3)
 
     def _update_state(self, v: Vehicle, pos: np.ndarray | None, why: str) -> None:
@@ -510,18 +474,17 @@ class DepthWorld:
                      origin_offset_ned=self.layout.offset_ned(v.index, self.vehicles), origin_source=v.origin_source)
         elif pos is None and v.state == "tracking":
             v.state = "lost"
-            self.log("lost", vehicle=v.index, sysid=v.sysid, why=why, frames_sent=int(self.sender.sent[v.index]))
+            self.log("lost", vehicle=v.index, sysid=v.sysid, why=why, frames_sent=self.feed.frames_sent(v.index))
 
     def warm_up(self) -> None:
         """Load (or compile) the camera kernel before announcing readiness."""
-        self.camera.render(np.array([[0.0, 0.0, -2.0], [5.0, 0.0, -2.0]]), np.zeros(2), 2,
-                           boxes=self.boxes, cylinders=self.cylinders)
+        self.feed.render(np.array([[0.0, 0.0, -2.0], [5.0, 0.0, -2.0]]), np.zeros(2))
 
     # ------------------------------------------------------------------ logs
     def status(self, now_s: float) -> None:
         for v in self.vehicles:
             pos, _ = self._placed(v, now_s)
-            frames = int(self.sender.sent[v.index])
+            frames = self.feed.frames_sent(v.index)
             self.log("status", vehicle=v.index, sysid=v.sysid, state=v.state, why=v.why or None,
                      pose_age_ms=round(v.pose_age_s(now_s) * 1e3, 1) if math.isfinite(v.pose_age_s(now_s)) else None,
                      pos_ned=pos, yaw_deg=round(math.degrees(v.yaw_rad), 1), pose_rate_hz=round(v.pose_rate_hz, 1),
@@ -540,44 +503,7 @@ class DepthWorld:
     def close(self) -> None:
         for link in self.links:
             link.close()
-        self.sender.close()
-
-
-def run(world: DepthWorld, duration_s: float | None, camera_hz: float) -> None:
-    """Real-time loop: read telemetry as it comes, render at ``camera_hz`` on a fixed time grid."""
-    stop: list[str] = []
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda signum, _frame: stop.append(signal.Signals(signum).name))
-    started = now = time.monotonic()
-    next_camera, next_status = now, now + 1.0
-    camera_period = 1.0 / camera_hz
-    while not stop:
-        if duration_s is not None and now - started >= duration_s:
-            stop.append("duration")
-            break
-        fds = world.fds()
-        timeout = min(max(0.0, min(next_camera, next_status) - time.monotonic()), 0.1)  # 0.1: links, heartbeats
-        if fds:
-            readable, _, _ = select.select(list(fds), [], [], timeout)
-        else:
-            time.sleep(timeout)
-            readable = []
-        now = time.monotonic()
-        for fd in readable:
-            world.receive(fds[fd], now)
-        world.service(now)
-        if now >= next_camera:
-            world.render_and_send(now)
-            next_camera += camera_period
-            if next_camera <= now:  # fell behind: skip frames but keep the camera's time grid
-                skipped = math.ceil((now - next_camera) / camera_period + 1e-9)
-                next_camera += skipped * camera_period
-                world.skipped_frames += skipped
-        if now >= next_status:
-            world.status(now)
-            next_status += 1.0
-    world.status(time.monotonic())
-    world.log("stopped", reason=stop[0] if stop else "?")
+        self.feed.close()
 
 
 # --------------------------------------------------------------------------- command line
@@ -630,19 +556,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--host", type=host, default="127.0.0.1", help="where the companions listen for depth (default 127.0.0.1)")
     parser.add_argument("--depth-port", type=udp_port_nonzero, default=14640,
                         help="vehicle i's frames go to depth-port + i; with --px4, i is the instance (default 14640)")
-    parser.add_argument("--camera-hz", type=float_range(0.0, MAX_CAMERA_HZ, low_open=True), default=30.0,
-                        help=f"depth frame rate, up to {MAX_CAMERA_HZ:g} (default 30; use a multiple of the policy's "
-                             "control rate)")
-    parser.add_argument("--camera-size", type=image_size, default=(32, 32), metavar="WxH",
-                        help="rendered resolution (default 32x32)")
-    parser.add_argument("--hfov", type=finite_float, default=90.0, help="horizontal field of view in degrees (default 90)")
-    parser.add_argument("--max-range", type=positive_float, default=20.0, help="camera range in metres (default 20)")
-    parser.add_argument("--supersample", type=int_range(1, MAX_SUPERSAMPLE), default=4,
-                        help=f"sub-rays per pixel side, 1..{MAX_SUPERSAMPLE} (default 4)")
-    parser.add_argument("--cylinder", type=cylinder, action="append", metavar="N,E,R[,H]",
-                        help="a vertical pole at N,E (world frame) of radius R (and height H, default 30 m); repeatable")
-    parser.add_argument("--box", type=box, action="append", metavar="N,E,D,HN,HE,HD",
-                        help="an axis-aligned box: centre and half sizes in world NED metres; repeatable")
+    add_camera_arguments(parser, frame="world")
     parser.add_argument("--stream-rate", type=float_range(0.0, 1000.0, low_open=True), default=50.0,
                         help="LOCAL_POSITION_NED and ATTITUDE rate asked of each autopilot (default 50 Hz)")
     parser.add_argument("--sysid", type=int_range(1, 255), default=250,
@@ -669,34 +583,36 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if args.spacing is not None and not math.isfinite(args.spacing):
         parser.error("--spacing must be a finite number of metres")
     args.offsets = _offsets(args, n, parser)
-    args.cylinder = cylinder_rows(args.cylinder)
-    check_camera(parser, args)
+    check_camera_arguments(parser, args)
     return args
+
+
+def depth_bridge_config(args: argparse.Namespace) -> DepthBridgeConfig:
+    """The :class:`DepthBridgeConfig` of parsed options (:func:`parse_args`)."""
+    return DepthBridgeConfig(
+        px4_instances=args.px4 or 0, connections=tuple(args.connect or ()), px4_first_instance=args.px4_first_instance,
+        gcs_host=args.gcs_host, gcs_port=args.gcs_port, offsets_ned=args.offsets, host=args.host,
+        depth_port=args.depth_port, camera=camera_config(args), stream_rate_hz=args.stream_rate, sysid=args.sysid)
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    config = depth_bridge_config(args)
     log = EventLog.open(args.log)
     try:
-        world = DepthWorld(args, log)
+        bridge = DepthBridge(config, log)
     except OSError as err:
-        print(f"sitl.world: error: cannot listen on udp {args.gcs_host}:{args.gcs_port}: {err.strerror} "
+        print(f"sitl.world: error: cannot listen on udp {config.gcs_host}:{config.gcs_port}: {err.strerror} "
               "(is QGroundControl or another ground station using it?)", file=sys.stderr)
-        return 1
-    try:
-        world.warm_up()
-        log("ready", vehicles=[{"vehicle": v.index, "source": v.source, "depth_port": v.depth_port}
-                               for v in world.vehicles],
-            layout=world.layout.describe(), camera={"size": list(args.camera_size), "hfov_deg": args.hfov,
-                                                    "hz": args.camera_hz, "max_range_m": args.max_range},
-            stream_rate_hz=args.stream_rate, pose_timeout_s=POSE_TIMEOUT_S)
-        print(f"sitl.world: depth for {world.n} vehicle(s) on {args.host}:{world.vehicles[0].depth_port}"
-              f"..{world.vehicles[-1].depth_port}", file=sys.stderr, flush=True)
-        run(world, args.duration, args.camera_hz)
-    finally:
-        world.close()
         log.close()
-    return 0
+        return 1
+    ready = dict(vehicles=[{"vehicle": v.index, "source": v.source, "depth_port": v.depth_port} for v in bridge.vehicles],
+                 layout=bridge.layout.describe(),
+                 camera={**config.camera.describe(), "max_range_m": config.camera.spec.max_range_m},
+                 stream_rate_hz=config.stream_rate_hz, pose_timeout_s=POSE_TIMEOUT_S)
+    banner = (f"sitl.world: depth for {bridge.n} vehicle(s) on {config.host}:{bridge.vehicles[0].depth_port}"
+              f"..{bridge.vehicles[-1].depth_port}")
+    return serve(bridge, args.duration, config.camera.hz, ready, banner)
 
 
 if __name__ == "__main__":

@@ -24,86 +24,147 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import select
-import signal
 import sys
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TextIO
 
 import numpy as np
 
 from companion.flight_modes import AutopilotKind
-from companion.spec import CameraSpec
+from companion.spec import DEFAULT_TASK_SPEC
 from sitl.cli_args import (
     ArgumentParser,
-    MAX_CAMERA_HZ,
-    MAX_SUPERSAMPLE,
     MAX_VEHICLES,
-    box,
-    check_camera,
     check_port_block,
-    cylinder,
-    cylinder_rows,
     finite_float,
     finite_floats,
-    float_range,
     host,
-    image_size,
     int_range,
     output_file,
     positive_float,
     udp_port,
     udp_port_nonzero,
 )
-from sitl.camera import LANDED_CAMERA_HEIGHT_M, DepthCamera
 from sitl.collision import uav_uav_collisions
-from sitl.realtime.depth_transport import DepthFrameSender
 from sitl.dynamics import DYNAMICS_NAMES, make_dynamics
+from sitl.env import _OUTCOME_NAMES, COLLISION_GROUND, COLLISION_UAV
+from sitl.realtime.camera_feed import CameraConfig, CameraFeed, add_camera_arguments, camera_config, check_camera_arguments
 from sitl.realtime.event_log import EventLog
-from sitl.realtime.mavlink_autopilot import Body, MavlinkUdpLink, SimAutopilot
+from sitl.realtime.loop import serve
+from sitl.realtime.mavlink_autopilot import Body, SimAutopilot
+from sitl.realtime.udp_endpoint import MavlinkUdpEndpoint
 
 PHYSICS_DT_S = 0.02
-COLLISION_RADIUS_M = 0.3
+MAX_PHYSICS_STEPS_PER_PASS = 5  # more than 0.1 s behind: drop the backlog, stay real time
 HARD_LANDING_M_S = 2.0
+TRACE_HZ = 10.0
+CRASH_UAV = _OUTCOME_NAMES[COLLISION_UAV]  # the crash event's outcome codes: the simulator's outcome names
+CRASH_GROUND = _OUTCOME_NAMES[COLLISION_GROUND]
 
 
-class SimWorld:
-    """N simulated vehicles: dynamics, camera, collisions, and one autopilot each."""
+@dataclass(frozen=True)
+class VehiclesConfig:
+    """What ``python -m sitl.vehicle`` simulates and where it talks (its options, checked).
 
-    def __init__(self, args: argparse.Namespace, log: EventLog) -> None:
-        n = args.n
-        self.n, self.args, self.log = n, args, log
-        self.dynamics = make_dynamics(args.dynamics, n)
-        if args.starts is not None:
-            starts, yaws = args.starts
-        else:
-            starts = np.repeat(np.asarray(args.start, dtype=np.float64)[None], n, axis=0)
-            starts[:, 1] += np.arange(n) * args.spacing
-            yaws = np.full(n, math.radians(args.yaw_deg))
-        self.dynamics.reset(np.arange(n), starts, yaws)
-        self.camera_spec = CameraSpec(width=args.camera_size[0], height=args.camera_size[1], hfov_deg=args.hfov,
-                                      max_range_m=args.max_range)
-        self.camera = DepthCamera(self.camera_spec, supersample=args.supersample)
-        self.cylinders = np.asarray(args.cylinder, dtype=np.float64).reshape(1, -1, 5) if args.cylinder else None
-        self.boxes = np.asarray(args.box, dtype=np.float64).reshape(1, -1, 6) if args.box else None
-        self.sender = DepthFrameSender(args.host, args.depth_port, n, args.hfov, args.max_range)
-        key = None
-        if args.signing_key:
-            from companion.mavlink_link import load_signing_key
+    Vehicle ``i`` has system id ``i + 1``, talks MAVLink to ``host:base_port + i`` (and to a
+    ground station at ``host:gcs_port``, 0 for none) and sends depth to ``host:depth_port + i``.
+    """
 
-            key = load_signing_key(args.signing_key)
-        kind = AutopilotKind(args.autopilot)
+    starts_ned: np.ndarray  # [n, 3] m, local NED
+    yaws_rad: np.ndarray  # [n]
+    autopilot: AutopilotKind = AutopilotKind.PX4
+    host: str = "127.0.0.1"
+    base_port: int = 14540
+    depth_port: int = 14640
+    gcs_port: int = 14550
+    airborne: bool = False
+    dynamics: str = "kinematic"
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    signing_key: bytes | None = None
+    odometry_child_frame: str = "local_ned"
+    collision_radius_m: float = DEFAULT_TASK_SPEC.collision_radius_m
+
+    @property
+    def n(self) -> int:
+        return len(self.starts_ned)
+
+
+class SimulatedVehicles:
+    """N simulated vehicles: dynamics, camera, collisions, and one autopilot each.
+
+    ``trace`` (a text stream), when set, gets :meth:`trace_line` at 10 Hz.
+    """
+
+    def __init__(self, config: VehiclesConfig, log: EventLog, trace: TextIO | None = None) -> None:
+        n = config.n
+        self.n, self.config, self.log, self.trace = n, config, log, trace
+        self.dynamics = make_dynamics(config.dynamics, n)
+        self.dynamics.reset(np.arange(n), np.asarray(config.starts_ned, dtype=np.float64),
+                            np.asarray(config.yaws_rad, dtype=np.float64))
+        self.feed = CameraFeed(config.camera, config.host, config.depth_port, n)
         self.autopilots: list[SimAutopilot] = []
         for i in range(n):
-            onboard = MavlinkUdpLink("onboard", (args.host, args.base_port + i), i + 1, key, link_id=1)
-            gcs = MavlinkUdpLink("gcs", (args.host, args.gcs_port), i + 1, key, link_id=2) if args.gcs_port else None
-            self.autopilots.append(SimAutopilot(i, kind, onboard, gcs, log, airborne=args.airborne,
-                                                odometry_child_frame=args.odometry_child_frame, camera=self.sender))
+            onboard = self._link("onboard", config.base_port + i, i + 1, link_id=1)
+            gcs = self._link("gcs", config.gcs_port, i + 1, link_id=2) if config.gcs_port else None
+            self.autopilots.append(SimAutopilot(i, config.autopilot, onboard, gcs, log, airborne=config.airborne,
+                                                odometry_child_frame=config.odometry_child_frame,
+                                                camera=self.feed.sender))
         self.collided = np.zeros(n, dtype=bool)
+        self.skipped_frames = 0
+        self._next_physics_s: float | None = None
+        self._next_trace_s: float | None = None
+
+    def _link(self, name: str, port: int, sysid: int, link_id: int) -> MavlinkUdpEndpoint:
+        """An autopilot link as PX4 SITL's: from an ephemeral local port to ``host:port``."""
+        return MavlinkUdpEndpoint.autopilot_link(name, (self.config.host, port), sysid, self.config.signing_key,
+                                                 link_id=link_id)
 
     def body(self, i: int) -> Body:
         d = self.dynamics
         return Body(d.pos_ned[i], d.vel_ned[i], float(d.yaw_rad[i]), float(d.yaw_rate_rad_s[i]))
+
+    # ------------------------------------------------------------------ the real-time loop's calls
+    def fds(self) -> dict[int, tuple[SimAutopilot, MavlinkUdpEndpoint]]:
+        return {link.fileno(): (ap, link) for ap in self.autopilots for link in ap.links}
+
+    def receive(self, link: tuple[SimAutopilot, MavlinkUdpEndpoint], now_s: float) -> None:
+        ap, endpoint = link
+        for msg in endpoint.receive():
+            ap.handle(endpoint, msg, now_s)
+
+    def wake_s(self) -> float:
+        return self._next_physics_s if self._next_physics_s is not None else -math.inf
+
+    def tick(self, now_s: float) -> None:
+        """Physics at 50 Hz (catching up at most 0.1 s), telemetry, and the trace."""
+        if self._next_physics_s is None:
+            self._next_physics_s = now_s
+        if now_s >= self._next_physics_s:
+            steps = 0
+            while now_s >= self._next_physics_s and steps < MAX_PHYSICS_STEPS_PER_PASS:
+                self.physics_step(now_s, PHYSICS_DT_S)
+                self._next_physics_s += PHYSICS_DT_S
+                steps += 1
+            if now_s >= self._next_physics_s:
+                self.log("overrun", behind_s=round(now_s - self._next_physics_s, 3))
+                self._next_physics_s = now_s + PHYSICS_DT_S
+        for i, ap in enumerate(self.autopilots):
+            ap.send_telemetry(now_s, self.body(i))
+        if self.trace is not None:
+            if self._next_trace_s is None:
+                self._next_trace_s = now_s
+            if now_s >= self._next_trace_s:
+                self.trace_line(self.trace)
+                self._next_trace_s = max(self._next_trace_s + 1.0 / TRACE_HZ, now_s)
+
+    def render_and_send(self, now_s: float | None = None) -> None:
+        d = self.dynamics
+        self.feed.render_and_send(list(range(self.n)), d.pos_ned, d.yaw_rad)
+
+    def warm_up(self) -> None:
+        self.render_and_send()  # compile/load the camera kernel before announcing readiness
 
     def physics_step(self, now_s: float, dt_s: float) -> None:
         """Advance every vehicle by ``dt_s`` under its autopilot's command."""
@@ -124,36 +185,28 @@ class SimWorld:
                 d.yaw_rate_rad_s[i] = 0.0
                 ap.touched_down(now_s)
                 if sink > HARD_LANDING_M_S:
-                    ap.crash(f"hit the ground at {sink:.1f} m/s")
+                    ap.crash(f"hit the ground at {sink:.1f} m/s", CRASH_GROUND)
             if not active[i] and not ap.airborne:
                 d.vel_ned[i] = 0.0
                 d.yaw_rate_rad_s[i] = 0.0
         flying = np.array([ap.airborne for ap in self.autopilots])
-        hits = uav_uav_collisions(prev, d.pos_ned, flying, self.n, COLLISION_RADIUS_M)
+        hits = uav_uav_collisions(prev, d.pos_ned, flying, self.n, self.config.collision_radius_m)
         for i in np.flatnonzero(hits & ~self.collided):
-            self.autopilots[i].crash("collision with another vehicle")
+            self.autopilots[i].crash("collision with another vehicle", CRASH_UAV)
         self.collided |= hits
         for i, ap in enumerate(self.autopilots):
             ap.update(now_s, self.body(i))
 
-    def render_and_send(self) -> None:
-        d = self.dynamics
-        camera_ned = d.pos_ned.copy()
-        camera_ned[:, 2] = np.minimum(camera_ned[:, 2], -LANDED_CAMERA_HEIGHT_M)
-        depth = self.camera.render(camera_ned, d.yaw_rad, self.n, boxes=self.boxes, cylinders=self.cylinders)
-        for i in range(self.n):
-            self.sender.send(i, depth[i])
-
-    def status(self) -> None:
+    def status(self, now_s: float | None = None) -> None:
         for i, ap in enumerate(self.autopilots):
             self.log("status", vehicle=i, pos_ned=self.dynamics.pos_ned[i], vel_ned=self.dynamics.vel_ned[i],
                      yaw_deg=round(math.degrees(float(self.dynamics.yaw_rad[i])), 1), mode=ap.mode, armed=ap.armed,
                      airborne=ap.airborne, crashed=ap.crashed, setpoints=ap.setpoints_received,
                      last_setpoint_t=None if not math.isfinite(ap.last_setpoint_s) else
                      round(time.time() - (time.monotonic() - ap.last_setpoint_s), 4),
-                     frames_sent=int(self.sender.sent[i]), refused_unsigned=sum(l.refused_unsigned for l in ap.links))
+                     frames_sent=self.feed.frames_sent(i), refused_unsigned=sum(l.refused_unsigned for l in ap.links))
 
-    def trace(self, stream) -> None:
+    def trace_line(self, stream: TextIO) -> None:
         """One JSON line of ground truth: every vehicle's position and state (for evaluations)."""
         record = {"t": round(time.time(), 4), "pos_ned": self.dynamics.pos_ned.round(4).tolist(),
                   "airborne": [ap.airborne for ap in self.autopilots],
@@ -164,59 +217,9 @@ class SimWorld:
         for ap in self.autopilots:
             for link in ap.links:
                 link.close()
-        self.sender.close()
-
-
-def run(world: SimWorld, duration_s: float | None, camera_hz: float, trace=None, trace_hz: float = 10.0) -> None:
-    """Real-time loop: wait for messages, step physics at 50 Hz, render at ``camera_hz``.
-
-    ``trace`` (a text stream) gets :meth:`SimWorld.trace` at ``trace_hz``.
-    """
-    stop: list[str] = []
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda signum, _frame: stop.append(signal.Signals(signum).name))
-    by_fd = {link.fileno(): (ap, link) for ap in world.autopilots for link in ap.links}
-    started = now = time.monotonic()
-    next_physics, next_camera, next_status, next_trace = now, now, now + 1.0, now
-    camera_period = 1.0 / camera_hz
-    while not stop:
-        if duration_s is not None and now - started >= duration_s:
-            stop.append("duration")
-            break
-        timeout = max(0.0, min(next_physics, next_camera) - time.monotonic())
-        try:
-            readable, _, _ = select.select(list(by_fd), [], [], timeout)
-        except InterruptedError:
-            readable = []
-        now = time.monotonic()
-        for fd in readable:
-            ap, link = by_fd[fd]
-            for msg in link.receive():
-                ap.handle(link, msg, now)
-        if now >= next_physics:
-            steps = 0
-            while now >= next_physics and steps < 5:
-                world.physics_step(now, PHYSICS_DT_S)
-                next_physics += PHYSICS_DT_S
-                steps += 1
-            if now >= next_physics:  # more than 0.1 s behind: drop the backlog, stay real time
-                world.log("overrun", behind_s=round(now - next_physics, 3))
-                next_physics = now + PHYSICS_DT_S
-        if now >= next_camera:
-            world.render_and_send()
-            next_camera += camera_period
-            if next_camera <= now:  # fell behind: skip frames but keep the camera's time grid
-                next_camera += math.ceil((now - next_camera) / camera_period + 1e-9) * camera_period
-        for i, ap in enumerate(world.autopilots):
-            ap.send_telemetry(now, world.body(i))
-        if now >= next_status:
-            world.status()
-            next_status += 1.0
-        if trace is not None and now >= next_trace:
-            world.trace(trace)
-            next_trace = max(next_trace + 1.0 / trace_hz, now)
-    world.status()
-    world.log("stopped", reason=stop[0] if stop else "?")
+        self.feed.close()
+        if self.trace is not None:
+            self.trace.close()
 
 
 # --------------------------------------------------------------------------- command line
@@ -259,18 +262,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                              "--start, --spacing and --yaw-deg")
     parser.add_argument("--airborne", action="store_true", help="start armed and hovering at --start (needs D < -0.5)")
     parser.add_argument("--dynamics", choices=DYNAMICS_NAMES, default="kinematic")
-    parser.add_argument("--camera-hz", type=float_range(0.0, MAX_CAMERA_HZ, low_open=True), default=30.0,
-                        help=f"depth frame rate, up to {MAX_CAMERA_HZ:g} (default 30; use a multiple of the policy's "
-                             "control rate)")
-    parser.add_argument("--camera-size", type=image_size, default=(32, 32), metavar="WxH", help="rendered resolution (default 32x32)")
-    parser.add_argument("--hfov", type=finite_float, default=90.0, help="horizontal field of view in degrees (default 90)")
-    parser.add_argument("--max-range", type=positive_float, default=20.0, help="camera range in metres (default 20)")
-    parser.add_argument("--supersample", type=int_range(1, MAX_SUPERSAMPLE), default=4,
-                        help=f"sub-rays per pixel side, 1..{MAX_SUPERSAMPLE} (default 4)")
-    parser.add_argument("--cylinder", type=cylinder, action="append", metavar="N,E,R[,H]",
-                        help="a vertical pole at N,E of radius R (and height H, default 30 m); repeatable")
-    parser.add_argument("--box", type=box, action="append", metavar="N,E,D,HN,HE,HD",
-                        help="an axis-aligned box: centre and half sizes in NED metres; repeatable")
+    add_camera_arguments(parser)
     parser.add_argument("--signing-key", metavar="FILE", help="MAVLink 2 signing key: sign all, refuse unsigned")
     parser.add_argument("--odometry-child-frame", choices=("local_ned", "body_frd"), default="local_ned",
                         help="ODOMETRY velocity frame: local_ned as PX4 1.14+, body_frd as PX4 up to 1.13")
@@ -291,7 +283,6 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         parser.error("--airborne needs a start altitude: --start N,E,D with D < -0.5 (altitude is -D)")
     if not args.airborne and args.starts is None and args.start[2] != 0.0:
         parser.error("a vehicle on the ground starts at D = 0; use --airborne to start in the air")
-    args.cylinder = cylinder_rows(args.cylinder)
     if args.signing_key:
         from companion.mavlink_link import load_signing_key
 
@@ -299,32 +290,40 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
             load_signing_key(args.signing_key)
         except ValueError as err:
             parser.error(f"--signing-key: {err}")
-    check_camera(parser, args)
+    check_camera_arguments(parser, args)
     return args
+
+
+def vehicles_config(args: argparse.Namespace) -> VehiclesConfig:
+    """The :class:`VehiclesConfig` of parsed options (:func:`parse_args`)."""
+    if args.starts is not None:
+        starts, yaws = args.starts
+    else:
+        starts = np.repeat(np.asarray(args.start, dtype=np.float64)[None], args.n, axis=0)
+        starts[:, 1] += np.arange(args.n) * args.spacing
+        yaws = np.full(args.n, math.radians(args.yaw_deg))
+    key = None
+    if args.signing_key:
+        from companion.mavlink_link import load_signing_key
+
+        key = load_signing_key(args.signing_key)
+    return VehiclesConfig(
+        starts_ned=starts, yaws_rad=yaws, autopilot=AutopilotKind(args.autopilot), host=args.host,
+        base_port=args.base_port, depth_port=args.depth_port, gcs_port=args.gcs_port, airborne=args.airborne,
+        dynamics=args.dynamics, camera=camera_config(args), signing_key=key,
+        odometry_child_frame=args.odometry_child_frame)
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    config = vehicles_config(args)
     log = EventLog.open(args.log)
-    world = SimWorld(args, log)
-    world.render_and_send()  # compile/load the camera kernel before announcing readiness
-    log("ready", n=args.n, autopilot=args.autopilot, dynamics=args.dynamics,
-        onboard_ports=[args.base_port + i for i in range(args.n)],
-        depth_ports=[args.depth_port + i for i in range(args.n)], gcs_port=args.gcs_port or None,
-        camera={"size": list(args.camera_size), "hfov_deg": args.hfov, "hz": args.camera_hz},
-        signing=bool(args.signing_key))
-    print(f"sitl.vehicle: {args.n} {args.autopilot} vehicle(s) up; companion i: --connect udp:{args.base_port}+i "
-          f"--camera sitl:{args.depth_port}+i", file=sys.stderr, flush=True)
     trace = open(args.trace, "w", buffering=1) if args.trace else None  # noqa: SIM115
-    try:
-        run(world, args.duration, args.camera_hz, trace)
-    finally:
-        world.close()
-        if trace is not None:
-            trace.close()
-        log.close()
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+    vehicles = SimulatedVehicles(config, log, trace)
+    ready = dict(n=config.n, autopilot=args.autopilot, dynamics=config.dynamics,
+                 onboard_ports=[config.base_port + i for i in range(config.n)],
+                 depth_ports=[config.depth_port + i for i in range(config.n)], gcs_port=config.gcs_port or None,
+                 camera=config.camera.describe(), signing=config.signing_key is not None)
+    banner = (f"sitl.vehicle: {config.n} {args.autopilot} vehicle(s) up; companion i: --connect "
+              f"udp:{config.base_port}+i --camera sitl:{config.depth_port}+i")
+    return serve(vehicles, args.duration, config.camera.hz, ready, banner)
