@@ -18,9 +18,11 @@ body-to-NED quaternions ``(w, x, y, z)``, as MAVLink's ATTITUDE / ODOMETRY carry
 Geodetic: a local NED frame is tied to the Earth at an origin (latitude, longitude in degrees,
 altitude in metres AMSL) with the local tangent plane approximation on the WGS-84 ellipsoid:
 north and east are arc lengths along the meridian and prime-vertical radii of curvature at
-the origin's latitude. Horizontal error against exact WGS-84 geodesy: about 1 mm at 100 m
-from the origin, 0.1 m at 1 km (it grows with the square of the distance); altitude is
-``origin altitude - down`` (the Earth's curvature, 8 cm at 1 km, is ignored: one flat ground).
+the origin's latitude, on the ellipsoid's surface. Horizontal error against exact WGS-84
+(ECEF) at sea level: about 1 mm at 100 m from the origin, 0.1 m at 1 km (it grows with the
+square of the distance); at altitude h the scale is off by h / 6,371 km more (0.8 cm per
+100 m at PX4 SITL's 488 m home), as PX4's own projection is. Altitude is ``origin altitude -
+down`` (the Earth's curvature, 8 cm at 1 km, is ignored: one flat ground).
 """
 
 from __future__ import annotations
