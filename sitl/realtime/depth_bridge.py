@@ -61,7 +61,8 @@ from sitl.cli_args import (
 from sitl.realtime.camera_feed import CameraConfig, CameraFeed, add_camera_arguments, camera_config, check_camera_arguments
 from sitl.realtime.event_log import EventLog
 from sitl.realtime.loop import serve
-from sitl.realtime.udp_endpoint import MavlinkUdpEndpoint, mavlink
+from sitl.realtime.depth_transport import DEPTH_BASE_PORT
+from sitl.realtime.udp_endpoint import GCS_PORT, MavlinkUdpEndpoint, mavlink
 
 from pymavlink import mavutil  # noqa: E402  (after companion.mavlink_endpoint: MAVLink 2)
 
@@ -281,10 +282,10 @@ class DepthBridgeConfig:
     connections: tuple[str, ...] = ()
     px4_first_instance: int = 0
     gcs_host: str = "0.0.0.0"
-    gcs_port: int = 14550
+    gcs_port: int = GCS_PORT
     offsets_ned: np.ndarray | None = None
     host: str = "127.0.0.1"
-    depth_port: int = 14640
+    depth_port: int = DEPTH_BASE_PORT
     camera: CameraConfig = field(default_factory=CameraConfig)
     stream_rate_hz: float = 50.0
     sysid: int = 250
@@ -541,8 +542,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--px4-first-instance", type=int_range(0, 254), default=0, metavar="K",
                         help="with --px4: the instances are K .. K+N-1 (default 0; PX4's gazebo-classic "
                              "sitl_multiple_run.sh starts at 1)")
-    parser.add_argument("--gcs-port", type=udp_port_nonzero, default=14550,
-                        help="with --px4: the UDP port the instances send their ground-station link to (default 14550)")
+    parser.add_argument("--gcs-port", type=udp_port_nonzero, default=GCS_PORT,
+                        help=f"with --px4: the UDP port the instances send their ground-station link to (default {GCS_PORT})")
     parser.add_argument("--gcs-host", type=host, default="0.0.0.0", help="with --px4: the address to listen on (default 0.0.0.0)")
     layout = parser.add_mutually_exclusive_group()
     layout.add_argument("--spawn-offsets", metavar="N,E,D;N,E,D;...",
@@ -554,8 +555,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     layout.add_argument("--spacing", type=finite_float, metavar="M",
                         help="vehicle i's origin i*M m east of vehicle 0's (the same as --offset-line 90,M)")
     parser.add_argument("--host", type=host, default="127.0.0.1", help="where the companions listen for depth (default 127.0.0.1)")
-    parser.add_argument("--depth-port", type=udp_port_nonzero, default=14640,
-                        help="vehicle i's frames go to depth-port + i; with --px4, i is the instance (default 14640)")
+    parser.add_argument("--depth-port", type=udp_port_nonzero, default=DEPTH_BASE_PORT,
+                        help=f"vehicle i's frames go to depth-port + i; with --px4, i is the instance (default {DEPTH_BASE_PORT})")
     add_camera_arguments(parser, frame="world")
     parser.add_argument("--stream-rate", type=float_range(0.0, 1000.0, low_open=True), default=50.0,
                         help="LOCAL_POSITION_NED and ATTITUDE rate asked of each autopilot (default 50 Hz)")

@@ -17,6 +17,7 @@ import numpy as np
 from companion.depth_wire import encode_frame
 
 CAMERA_FAULTS = ("ok", "off", "garbage", "wrong")
+DEPTH_BASE_PORT = 14640  # vehicle i's frames go to 14640 + i by default (beside PX4's 14540 + i)
 
 
 class DepthFrameSender:

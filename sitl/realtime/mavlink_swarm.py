@@ -44,6 +44,9 @@ import numpy as np
 
 from companion.spec import DEFAULT_CAMERA_SPEC, DEFAULT_TASK_SPEC
 from sitl.metrics import OUTCOMES, UAVRecord
+from sitl.realtime.camera_feed import DEFAULT_CAMERA_HZ
+from sitl.realtime.depth_transport import DEPTH_BASE_PORT
+from sitl.realtime.udp_endpoint import GCS_PORT, PX4_ONBOARD_BASE_PORT, MavlinkUdpEndpoint, mavlink
 from sitl.scenarios import ScenarioSample
 
 COLLISION_RADIUS_M = DEFAULT_TASK_SPEC.collision_radius_m  # R, as sitl.vehicle and the in-process simulator use
@@ -61,11 +64,11 @@ class MavlinkSettings:
 
     policy_path: str
     start: str = "ground"  # ground: companions arm and take off; airborne: vehicles start hovering
-    base_port: int = 14540  # companion i <-> vehicle i on base_port + i (PX4 SITL's onboard ports)
-    depth_port: int = 14640  # vehicle i's depth frames to depth_port + i
-    gcs_port: int = 14550  # every vehicle's ground-station link (this process)
+    base_port: int = PX4_ONBOARD_BASE_PORT  # companion i <-> vehicle i on base_port + i (PX4 SITL's onboard ports)
+    depth_port: int = DEPTH_BASE_PORT  # vehicle i's depth frames to depth_port + i
+    gcs_port: int = GCS_PORT  # every vehicle's ground-station link (this process)
     dynamics: str = "kinematic"
-    camera_hz: float = 30.0
+    camera_hz: float = DEFAULT_CAMERA_HZ
     camera_size: tuple[int, int] = (DEFAULT_CAMERA_SPEC.width, DEFAULT_CAMERA_SPEC.height)
     hfov_deg: float = DEFAULT_CAMERA_SPEC.hfov_deg
     max_range_m: float = DEFAULT_CAMERA_SPEC.max_range_m
@@ -181,8 +184,6 @@ class GroundStationLink:
     """
 
     def __init__(self, port: int) -> None:
-        from sitl.realtime.udp_endpoint import MavlinkUdpEndpoint, mavlink
-
         self.mavlink = mavlink
         try:
             self.endpoint = MavlinkUdpEndpoint("gcs", ("127.0.0.1", port), 255, 190)

@@ -24,6 +24,8 @@ from companion.mavlink_endpoint import mavlink, new_parser, parse_datagram, setu
 
 Address = tuple[str, int]
 
+PX4_ONBOARD_BASE_PORT = 14540  # PX4 SITL instance i's onboard (companion) link: UDP 14540 + i
+GCS_PORT = 14550  # where autopilots send their ground-station link (QGroundControl's port)
 MAX_DATAGRAMS_PER_READ = 5000  # a flood cannot keep the real-time loop inside one read
 
 

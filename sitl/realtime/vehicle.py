@@ -53,7 +53,8 @@ from sitl.realtime.camera_feed import CameraConfig, CameraFeed, add_camera_argum
 from sitl.realtime.event_log import EventLog
 from sitl.realtime.loop import serve
 from sitl.realtime.mavlink_autopilot import Body, SimAutopilot
-from sitl.realtime.udp_endpoint import MavlinkUdpEndpoint
+from sitl.realtime.depth_transport import DEPTH_BASE_PORT
+from sitl.realtime.udp_endpoint import GCS_PORT, PX4_ONBOARD_BASE_PORT, MavlinkUdpEndpoint
 
 PHYSICS_DT_S = 0.02
 MAX_PHYSICS_STEPS_PER_PASS = 5  # more than 0.1 s behind: drop the backlog, stay real time
@@ -75,9 +76,9 @@ class VehiclesConfig:
     yaws_rad: np.ndarray  # [n]
     autopilot: AutopilotKind = AutopilotKind.PX4
     host: str = "127.0.0.1"
-    base_port: int = 14540
-    depth_port: int = 14640
-    gcs_port: int = 14550
+    base_port: int = PX4_ONBOARD_BASE_PORT
+    depth_port: int = DEPTH_BASE_PORT
+    gcs_port: int = GCS_PORT
     airborne: bool = False
     dynamics: str = "kinematic"
     camera: CameraConfig = field(default_factory=CameraConfig)
@@ -110,6 +111,7 @@ class SimulatedVehicles:
             self.autopilots.append(SimAutopilot(i, config.autopilot, onboard, gcs, log, airborne=config.airborne,
                                                 odometry_child_frame=config.odometry_child_frame,
                                                 camera=self.feed.sender))
+        self._fds = {link.fileno(): (ap, link) for ap in self.autopilots for link in ap.links}
         self.collided = np.zeros(n, dtype=bool)
         self.skipped_frames = 0
         self._next_physics_s: float | None = None
@@ -126,7 +128,7 @@ class SimulatedVehicles:
 
     # ------------------------------------------------------------------ the real-time loop's calls
     def fds(self) -> dict[int, tuple[SimAutopilot, MavlinkUdpEndpoint]]:
-        return {link.fileno(): (ap, link) for ap in self.autopilots for link in ap.links}
+        return self._fds  # the links never change
 
     def receive(self, link: tuple[SimAutopilot, MavlinkUdpEndpoint], now_s: float) -> None:
         ap, endpoint = link
@@ -249,9 +251,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--autopilot", choices=[k.value for k in AutopilotKind], default="px4",
                         help="behave like PX4 (default) or ArduCopter")
     parser.add_argument("--host", type=host, default="127.0.0.1", help="address of the companions and ground station (default 127.0.0.1)")
-    parser.add_argument("--base-port", type=udp_port_nonzero, default=14540, help="companion i listens on base-port + i (default 14540)")
-    parser.add_argument("--depth-port", type=udp_port_nonzero, default=14640, help="depth frames of vehicle i go to depth-port + i (default 14640)")
-    parser.add_argument("--gcs-port", type=udp_port, default=14550, help="ground-station port, 0 for none (default 14550)")
+    parser.add_argument("--base-port", type=udp_port_nonzero, default=PX4_ONBOARD_BASE_PORT,
+                        help=f"companion i listens on base-port + i (default {PX4_ONBOARD_BASE_PORT})")
+    parser.add_argument("--depth-port", type=udp_port_nonzero, default=DEPTH_BASE_PORT,
+                        help=f"depth frames of vehicle i go to depth-port + i (default {DEPTH_BASE_PORT})")
+    parser.add_argument("--gcs-port", type=udp_port, default=GCS_PORT,
+                        help=f"ground-station port, 0 for none (default {GCS_PORT})")
     parser.add_argument("--start", type=finite_floats((3,), "--start"), default=[0.0, 0.0, 0.0], metavar="N,E,D",
                         help="start of vehicle 0 in local NED metres (default 0,0,0: on the ground at home)")
     parser.add_argument("--spacing", type=finite_float, default=3.0, help="vehicle i starts i * spacing metres east of vehicle 0")
