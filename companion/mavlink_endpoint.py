@@ -115,6 +115,27 @@ def _reset_parser(mav: mavlink.MAVLink) -> None:
     mav.have_prefix_error = False
 
 
+def parse_datagram(mav: mavlink.MAVLink, data: bytes) -> tuple[list, bool]:
+    """Every message in one UDP datagram, parsed by ``mav`` from a fresh state (BAD_DATA included).
+
+    A datagram carries whole frames: a frame cut off at its end is dropped, never completed by
+    the next datagram (from whoever sends it). Returns (messages, ok); ok is False when the
+    datagram broke the parser (the messages before the break are kept).
+    """
+    _reset_parser(mav)
+    out: list = []
+    ok = True
+    try:
+        msg = mav.parse_char(data)
+        while msg is not None:
+            out.append(msg)
+            msg = mav.parse_char(b"")
+    except Exception:  # noqa: BLE001 - a hostile datagram must never take the link down
+        ok = False
+    _reset_parser(mav)
+    return out, ok
+
+
 class UdpEndpoint:
     """A MAVLink 2 UDP endpoint that parses datagram by datagram and talks to one peer.
 
@@ -196,17 +217,9 @@ class UdpEndpoint:
 
     def parse_datagram(self, data: bytes) -> list:
         """Every message in one datagram, parsed from a fresh state (BAD_DATA included)."""
-        mav = self.mav
-        _reset_parser(mav)
-        out = []
-        try:
-            msg = mav.parse_char(data)
-            while msg is not None:
-                out.append(msg)
-                msg = mav.parse_char(b"")
-        except Exception:  # noqa: BLE001 - a hostile datagram must never take the link down
+        out, ok = parse_datagram(self.mav, data)
+        if not ok:
             self.bad_datagrams += 1
-        _reset_parser(mav)  # a frame cut off at the datagram's end is dropped, never completed later
         return out
 
     def close(self) -> None:

@@ -51,6 +51,7 @@ from companion.flight_modes import (  # noqa: E402
     is_landing_mode,
     mode_name,
 )
+from companion.frames import body_to_ned_matrix, euler_yaw_rate, quaternion_to_euler  # noqa: E402
 from companion.mavlink_endpoint import UdpEndpoint, VerifyFirstMAVLink, new_parser, setup_signing  # noqa: E402
 
 mavutil.set_dialect("common")
@@ -172,30 +173,6 @@ class Odometry:
     yaw_rate_rad_s: float  # Euler yaw rate (heading change), not the body z rate
     received_s: float  # monotonic time of the (oldest) message it was built from
     source: str
-
-
-def quaternion_to_euler(q_wxyz) -> tuple[float, float, float]:
-    """(roll, pitch, yaw) in rad of a body-to-NED quaternion (w, x, y, z)."""
-    w, x, y, z = (float(v) for v in q_wxyz)
-    roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
-    pitch = math.asin(max(-1.0, min(1.0, 2.0 * (w * y - z * x))))
-    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-    return roll, pitch, yaw
-
-
-def body_to_ned_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """Rotation matrix taking FRD body vectors into NED (ZYX Euler angles)."""
-    cr, sr, cp, sp, cy, sy = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch), math.cos(yaw), math.sin(yaw)
-    return np.array([
-        [cp * cy, sr * sp * cy - cr * sy, cr * sp * cy + sr * sy],
-        [cp * sy, sr * sp * sy + cr * cy, cr * sp * sy - sr * cy],
-        [-sp, sr * cp, cr * cp],
-    ])
-
-
-def euler_yaw_rate(roll: float, pitch: float, pitchspeed: float, yawspeed: float) -> float:
-    """Heading rate (rad/s) from body rates: (q sin(roll) + r cos(roll)) / cos(pitch)."""
-    return (pitchspeed * math.sin(roll) + yawspeed * math.cos(roll)) / max(math.cos(pitch), 1e-3)
 
 
 class OdometryInvalid(ValueError):

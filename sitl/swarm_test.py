@@ -528,7 +528,7 @@ def run_single(args: argparse.Namespace) -> int:
         try:
             mav_result, mavlink_info = _run_over_mavlink(args, method, settings, results[0], out)
         except Exception as err:  # noqa: BLE001 - reported with its reason; every process is already stopped
-            from sitl.mavlink_swarm import MavlinkSwarmError
+            from sitl.realtime.mavlink_swarm import MavlinkSwarmError
 
             if not isinstance(err, (MavlinkSwarmError, OSError, ValueError)):
                 raise
@@ -588,12 +588,12 @@ def run_single(args: argparse.Namespace) -> int:
 
 def _run_over_mavlink(args: argparse.Namespace, method: Method, settings: EvalSettings, in_process: EvalResult,
                       out: Path) -> tuple[EvalResult, dict]:
-    """Fly the evaluation's episodes with the real processes (:mod:`sitl.mavlink_swarm`).
+    """Fly the evaluation's episodes with the real processes (:mod:`sitl.realtime.mavlink_swarm`).
 
     Returns the MAVLink result and what the JSON says about it: settings, costs, each
     episode's processes, and the agreement with ``in_process`` (same policy, same episodes).
     """
-    from sitl.mavlink_swarm import MavlinkSettings, evaluate_over_mavlink
+    from sitl.realtime.mavlink_swarm import MavlinkSettings, evaluate_over_mavlink
     from sitl.scenarios import sample_scenario
 
     # The in-process evaluation draws its episodes in this order from this seed, so both

@@ -28,13 +28,13 @@ def _companion(argv):
 
 
 def _vehicle(argv):
-    from sitl import vehicle
+    from sitl.realtime import vehicle
 
     return vehicle.parse_args(argv)  # main would start the simulation had the value been accepted
 
 
 def _world(argv):
-    from sitl import world
+    from sitl.realtime import depth_bridge as world
 
     return world.parse_args(argv)
 

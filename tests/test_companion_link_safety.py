@@ -1,7 +1,7 @@
 """The companion's MAVLink endpoint under hostile traffic (issue 16, items 1-3 and 10-13).
 
 Each test drives the real :class:`companion.mavlink_link.AutopilotLink` over real UDP sockets
-on 127.0.0.1, with the simulator's own MAVLink endpoint (:class:`sitl.mavlink_autopilot.MavlinkUdpLink`)
+on 127.0.0.1, with the simulator's own MAVLink endpoint (:class:`sitl.realtime.udp_endpoint.MavlinkUdpEndpoint`)
 as the autopilot and plain sockets as the attacker; the odometry test flies the real vehicle and
 companion processes with a relay on the wire that corrupts ODOMETRY. All bounded in time.
 """
@@ -20,7 +20,7 @@ import pytest
 
 from companion.mavlink_endpoint import MAX_SIGNING_STREAMS, mavlink
 from companion.mavlink_link import AutopilotLink, LinkError, OdometryInvalid, odometry_from_msg
-from sitl.mavlink_autopilot import MavlinkUdpLink
+from sitl.realtime.udp_endpoint import MavlinkUdpEndpoint
 from tests.companion_helpers import CONTROL_PERIOD_S, REPO, Processes, Rig, env, free_udp_ports, make_policy
 
 pytestmark = pytest.mark.timeout(120)
@@ -41,12 +41,12 @@ def _open_link(key: bytes | None = None) -> tuple[AutopilotLink, int]:
     return link, port
 
 
-def _autopilot(port: int, key: bytes | None = None, link_id: int = 1) -> MavlinkUdpLink:
+def _autopilot(port: int, key: bytes | None = None, link_id: int = 1) -> MavlinkUdpEndpoint:
     """The simulator's PX4-style endpoint (system 1, component 1) sending to the companion's port."""
-    return MavlinkUdpLink("onboard", ("127.0.0.1", port), 1, key, link_id=link_id)
+    return MavlinkUdpEndpoint.autopilot_link("onboard", ("127.0.0.1", port), 1, key, link_id=link_id)
 
 
-def _heartbeat(ap: MavlinkUdpLink, custom_mode: int = PX4_OFFBOARD, armed: bool = True) -> None:
+def _heartbeat(ap: MavlinkUdpEndpoint, custom_mode: int = PX4_OFFBOARD, armed: bool = True) -> None:
     base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mavlink.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0)
     ap.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, base, custom_mode,
                           mavlink.MAV_STATE_ACTIVE)
@@ -72,7 +72,7 @@ def _dropped(link: AutopilotLink) -> tuple[int, int]:
     return getattr(link, "dropped_foreign_address", 0), getattr(link, "dropped_foreign_link", 0)
 
 
-def _connected(key: bytes | None = None) -> tuple[AutopilotLink, MavlinkUdpLink]:
+def _connected(key: bytes | None = None) -> tuple[AutopilotLink, MavlinkUdpEndpoint]:
     link, port = _open_link(key)
     ap = _autopilot(port, key)
     _heartbeat(ap)
@@ -160,7 +160,7 @@ def test_a_replayed_heartbeat_from_another_link_id_is_ignored_and_routed_goals_s
     capture = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     capture.bind(("127.0.0.1", 0))
     capture.settimeout(2.0)
-    gcs_link = MavlinkUdpLink("gcs", capture.getsockname(), 1, KEY, link_id=2)  # the autopilot's GCS link
+    gcs_link = MavlinkUdpEndpoint.autopilot_link("gcs", capture.getsockname(), 1, KEY, link_id=2)  # the autopilot's GCS link
     attacker = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     try:
         # What the autopilot told the ground station: POSCTL, disarmed (the pilot has it).
@@ -248,7 +248,7 @@ def test_foreign_senders_are_never_sent_to_and_never_heard():
             s.close()
 
 
-def _drain_wait(ap: MavlinkUdpLink) -> list:
+def _drain_wait(ap: MavlinkUdpEndpoint) -> list:
     select.select([ap.sock], [], [], 0.2)
     time.sleep(0.05)
     return ap.receive()

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sitl.mavlink_swarm import _records_from_trace
+from sitl.realtime.mavlink_swarm import _records_from_trace
 from sitl.scenarios import ScenarioSample
 from tests.companion_helpers import REPO, env, free_udp_blocks, udp_port_free
 
@@ -171,7 +171,7 @@ def test_outcomes_from_the_world_trace_use_the_in_process_definitions():
                       "pos_ned": [[x, 0, -5], [min(0.2 * k, 1.8), 4, -5], [0.1 * k, 8, -5 + min(0.5 * k, 4.9)],
                                   [0.05 * k, 12, -5]],
                       "crashed": [False, crashed1, False, False], "airborne": [True] * 4})
-    crashes = {1: (t0 + 0.95, "collision with another vehicle")}
+    crashes = {1: (t0 + 0.95, "collision_uav")}
     records = _records_from_trace(trace, crashes, _sample(), t0, episode=3, time_limit_s=2.5)
     assert [r.outcome for r in records] == ["arrived", "collision_uav", "collision_ground", "timeout"]
     assert records[0].duration_s == pytest.approx(1.8, abs=1e-6)  # first sample within 0.5 m: x = 3.6

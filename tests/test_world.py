@@ -254,7 +254,7 @@ class _Sender:
 
 def test_default_layout_places_vehicles_by_their_global_origins(tmp_path):
     """Both report local (0, 0, -5) facing north; instance 1's origin lies 4 m north of instance 0's."""
-    from sitl.world import shift_global
+    from sitl.realtime.depth_bridge import shift_global
 
     gcs, depth = free_udp_blocks(1, 2)
     origin0 = (47.397742, 8.545594, 488.0)
@@ -368,7 +368,7 @@ def test_stale_telemetry_stops_that_vehicles_frames_and_hides_its_body(tmp_path)
 
 
 def test_bad_arguments_exit_2_with_the_reason(capsys):
-    from sitl.world import parse_args
+    from sitl.realtime.depth_bridge import parse_args
 
     cases = [
         ([], "one of the arguments --px4 --connect is required"),
@@ -391,7 +391,7 @@ def test_bad_arguments_exit_2_with_the_reason(capsys):
 
 
 def test_a_busy_gcs_port_exits_1_with_the_reason(capsys):
-    from sitl.world import main
+    from sitl.realtime.depth_bridge import main
 
     (port,) = free_udp_blocks(1)
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as busy:  # as QGroundControl on 14550 would
@@ -401,7 +401,7 @@ def test_a_busy_gcs_port_exits_1_with_the_reason(capsys):
 
 
 def test_layout_options_and_origin_arithmetic():
-    from sitl.world import Layout, Vehicle, ned_offset_m, parse_args, shift_global
+    from sitl.realtime.depth_bridge import Layout, Vehicle, ned_offset_m, parse_args, shift_global
 
     line = parse_args(["--px4", "3", "--offset-line", "0,3"]).offsets  # PX4 gazebo-classic: 3 m apart northwards
     assert np.allclose(line, [[0, 0, 0], [3, 0, 0], [6, 0, 0]])

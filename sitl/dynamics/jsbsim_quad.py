@@ -13,9 +13,9 @@ few properties, so loading prints about twenty warning lines — construction si
 process's stdout/stderr while it loads the model.
 
 Frames. Each FDM starts at a lat/lon computed from the requested NED position around a
-fixed origin (:class:`JSBSimParams`) with a local-tangent (flat-earth) approximation
-using the WGS84 meridian and prime-vertical radii at the origin, and the same mapping
-brings positions back. Terrain is at sea level, so altitude above ground
+fixed origin (:class:`JSBSimParams`) with :func:`companion.frames.ned_to_geodetic` (the
+local tangent plane on WGS-84), and :func:`companion.frames.geodetic_to_ned` brings
+positions back. Terrain is at sea level, so altitude above ground
 (``position/h-agl-ft``) is exactly ``-z`` and JSBSim's ground is the plane z = 0.
 Velocities are JSBSim's Earth-relative ``velocities/v-{north,east,down}-fps``; yaw is
 ``attitude/psi-rad`` wrapped to [-pi, pi) and the yaw rate ``velocities/psidot-rad_sec``.
@@ -73,6 +73,7 @@ import jsbsim
 import numba
 import numpy as np
 
+from companion.frames import geodetic_to_ned, ned_to_geodetic, wrap_angle_rad
 from sitl.dynamics.base import Dynamics
 
 FT_TO_M = 0.3048
@@ -81,8 +82,6 @@ FTLBF_TO_NM = FT_TO_M * LBF_TO_N
 SLUG_TO_KG = 14.593902937206364
 SLUGFT2_TO_KGM2 = SLUG_TO_KG * FT_TO_M * FT_TO_M
 INCH_TO_M = 0.0254
-WGS84_A_M = 6378137.0
-WGS84_E2 = 6.69437999014e-3
 STANDARD_GRAVITY_M_S2 = 9.80665
 
 # Motor order = JSBSim engine index = F450 ESC order (front-right, aft-left, front-left, aft-right).
@@ -256,10 +255,6 @@ class JSBSimDynamics(Dynamics):
         self.airframe = _measure_airframe(params.aircraft, params.fdm_dt_s)
         self._dt_s = params.fdm_dt_s
         self._fdms = [_load_fdm(params.aircraft, params.fdm_dt_s) for _ in range(num_uavs)]
-        lat0 = math.radians(params.origin_lat_deg)
-        den = math.sqrt(1.0 - WGS84_E2 * math.sin(lat0) ** 2)
-        self._m_per_rad_lat = WGS84_A_M * (1.0 - WGS84_E2) / den**3  # meridian radius
-        self._m_per_rad_lon = WGS84_A_M / den * math.cos(lat0)  # prime-vertical radius x cos(lat)
         self._state = np.zeros((num_uavs, len(_STATE_PROPS)))  # JSBSim units (ft/s, rad)
         self._ctrl = np.zeros((num_uavs, 9))  # controller memory: velocity integrators, rate integrators, last rates
         self._motor = np.zeros((num_uavs, 4))  # ESC commands
@@ -280,18 +275,14 @@ class JSBSimDynamics(Dynamics):
     # ------------------------------------------------------------------ frames
     def ned_to_geodetic(self, pos_ned: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """NED positions [k, 3] (m) -> (geodetic latitude deg, longitude deg, height above ground ft)."""
-        pos_ned = np.asarray(pos_ned, dtype=np.float64)
-        lat = self.params.origin_lat_deg + np.degrees(pos_ned[:, 0] / self._m_per_rad_lat)
-        lon = self.params.origin_lon_deg + np.degrees(pos_ned[:, 1] / self._m_per_rad_lon)
-        return lat, lon, -pos_ned[:, 2] / FT_TO_M
+        geo = ned_to_geodetic(pos_ned, self.params.origin_lat_deg, self.params.origin_lon_deg)
+        return geo[:, 0], geo[:, 1], geo[:, 2] / FT_TO_M
 
     def geodetic_to_ned(self, lat_deg: np.ndarray, lon_deg: np.ndarray, h_agl_ft: np.ndarray) -> np.ndarray:
         """Inverse of :meth:`ned_to_geodetic`; returns [k, 3] metres."""
-        out = np.empty((len(lat_deg), 3))
-        out[:, 0] = np.radians(np.asarray(lat_deg) - self.params.origin_lat_deg) * self._m_per_rad_lat
-        out[:, 1] = np.radians(np.asarray(lon_deg) - self.params.origin_lon_deg) * self._m_per_rad_lon
-        out[:, 2] = -np.asarray(h_agl_ft) * FT_TO_M
-        return out
+        geo = np.stack([np.asarray(lat_deg, dtype=np.float64), np.asarray(lon_deg, dtype=np.float64),
+                        np.asarray(h_agl_ft, dtype=np.float64) * FT_TO_M], axis=-1)
+        return geodetic_to_ned(geo, self.params.origin_lat_deg, self.params.origin_lon_deg)
 
     # ------------------------------------------------------------------ API
     def reset(self, index: np.ndarray, pos_ned: np.ndarray, yaw_rad: np.ndarray) -> None:
@@ -388,7 +379,7 @@ class JSBSimDynamics(Dynamics):
         self.pos_ned[index] = self.geodetic_to_ned(geo[:, 0], geo[:, 1], geo[:, 2])
         st = self._state[index]
         self.vel_ned[index] = st[:, 0:3] * FT_TO_M
-        self.yaw_rad[index] = (st[:, 5] + np.pi) % (2.0 * np.pi) - np.pi
+        self.yaw_rad[index] = wrap_angle_rad(st[:, 5])
         self.yaw_rate_rad_s[index] = st[:, 9]
 
 

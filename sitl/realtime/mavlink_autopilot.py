@@ -45,7 +45,6 @@ from __future__ import annotations
 
 import math
 import os
-import socket
 import time
 from dataclasses import dataclass
 
@@ -66,11 +65,12 @@ from companion.flight_modes import (  # noqa: E402
     px4_custom_mode,
     px4_main_sub,
 )
+from companion.frames import ned_to_frd, ned_to_geodetic, wrap_angle_rad, yaw_to_quaternion  # noqa: E402
+from sitl.realtime.udp_endpoint import MavlinkUdpEndpoint  # noqa: E402
 
 HOME_LAT_DEG = 47.397742  # PX4 SITL's default home (Zurich)
 HOME_LON_DEG = 8.545594
 HOME_ALT_AMSL_M = 488.0
-EARTH_RADIUS_M = 6_378_137.0
 
 OFFBOARD_STREAM_MIN_S = 1.0  # PX4: setpoints for this long before OFFBOARD is accepted
 SETPOINT_GAP_MAX_S = 0.5  # > 2 Hz: a longer gap restarts the stream
@@ -111,75 +111,6 @@ class Body:
     yaw_rate_rad_s: float
 
 
-class MavlinkUdpLink:
-    """One MAVLink 2 endpoint over UDP: sends to a fixed remote port, receives on its own.
-
-    Like PX4 SITL: the autopilot binds a local port and sends to the remote port where the
-    companion (or ground station) listens; replies come back to the local port.
-    """
-
-    def __init__(self, name: str, remote: tuple[str, int], sysid: int, signing_key: bytes | None = None,
-                 link_id: int = 0, bind_host: str = "127.0.0.1") -> None:
-        self.name, self.remote = name, remote
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind((bind_host, 0))
-        self.sock.setblocking(False)
-        self.mav = mavlink.MAVLink(self, srcSystem=sysid, srcComponent=mavlink.MAV_COMP_ID_AUTOPILOT1)
-        self.mav.robust_parsing = True
-        self.silenced = False  # failure injection: the link is dead both ways
-        self.refused_unsigned = 0
-        self.sent = 0
-        if signing_key is not None:
-            self.mav.signing.secret_key = signing_key
-            self.mav.signing.sign_outgoing = True
-            self.mav.signing.link_id = link_id
-            self.mav.signing.timestamp = int((time.time() - 1420070400) * 1e5)  # 10 us since 2015
-            self.mav.signing.allow_unsigned_callback = self._refuse_unsigned
-
-    def _refuse_unsigned(self, _mav, _msg_id: int) -> bool:
-        self.refused_unsigned += 1
-        return False
-
-    def fileno(self) -> int:
-        return self.sock.fileno()
-
-    def write(self, buf: bytes) -> None:
-        """Called by pymavlink for every packed message."""
-        if self.silenced:
-            return
-        try:
-            self.sock.sendto(buf, self.remote)
-            self.sent += 1
-        except OSError:
-            pass  # nobody listening (ICMP port unreachable): like UDP on a real autopilot
-
-    def forward(self, raw: bytes) -> None:
-        """Send a message received on another link unchanged (signature included)."""
-        self.write(bytes(raw))
-
-    def receive(self) -> list:
-        """Every message waiting on the socket (bad data and refused messages dropped)."""
-        out = []
-        while True:
-            try:
-                data = self.sock.recv(65535)
-            except (BlockingIOError, InterruptedError):
-                break
-            except OSError:
-                break
-            if self.silenced:
-                continue
-            try:
-                msgs = self.mav.parse_buffer(data) or []
-            except mavlink.MAVError:
-                continue
-            out.extend(m for m in msgs if m.get_type() != "BAD_DATA")
-        return out
-
-    def close(self) -> None:
-        self.sock.close()
-
-
 class SimAutopilot:
     """The flight-mode logic and MAVLink interface of one simulated vehicle.
 
@@ -195,7 +126,7 @@ class SimAutopilot:
         camera: the vehicle's depth sender (for camera failure injection), or None.
     """
 
-    def __init__(self, index: int, kind: AutopilotKind, onboard: MavlinkUdpLink, gcs: MavlinkUdpLink | None,
+    def __init__(self, index: int, kind: AutopilotKind, onboard: MavlinkUdpEndpoint, gcs: MavlinkUdpEndpoint | None,
                  events, airborne: bool = False, odometry_child_frame: str = "local_ned", camera=None) -> None:
         self.index, self.kind = index, kind
         self.sysid = index + 1
@@ -276,7 +207,7 @@ class SimAutopilot:
             link.mav.statustext_send(severity, text.encode()[:50])
 
     # ================================================================== receiving
-    def handle(self, link: MavlinkUdpLink, msg, now_s: float) -> None:
+    def handle(self, link: MavlinkUdpEndpoint, msg, now_s: float) -> None:
         """Act on one message received on ``link`` and forward it if it is for someone else."""
         kind = msg.get_type()
         target_sys = getattr(msg, "target_system", None)
@@ -297,10 +228,10 @@ class SimAutopilot:
         elif kind == "SET_POSITION_TARGET_LOCAL_NED" and target_sys == self.sysid:
             self._on_setpoint(msg, now_s)
 
-    def _ack(self, link: MavlinkUdpLink, msg, result: int) -> None:
+    def _ack(self, link: MavlinkUdpEndpoint, msg, result: int) -> None:
         link.mav.command_ack_send(msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())
 
-    def _on_command(self, link: MavlinkUdpLink, msg, now_s: float) -> None:
+    def _on_command(self, link: MavlinkUdpEndpoint, msg, now_s: float) -> None:
         cmd = msg.command
         R = mavlink
         if cmd == R.MAV_CMD_COMPONENT_ARM_DISARM:
@@ -408,7 +339,7 @@ class SimAutopilot:
         self.events("takeoff", vehicle=self.index, alt_m=param7)
         return R.MAV_RESULT_ACCEPTED
 
-    def _set_interval(self, link: MavlinkUdpLink, msg_id: int, interval_us: float) -> int:
+    def _set_interval(self, link: MavlinkUdpEndpoint, msg_id: int, interval_us: float) -> int:
         R = mavlink
         streams = self.streams[id(link)]
         defaults = self._default_streams()
@@ -462,7 +393,7 @@ class SimAutopilot:
         if not np.all(np.isfinite(vel)):
             return
         if frame in (1, 7):  # NED velocity: project on the heading (the kinematic model flies forward)
-            vel_fwd = vel[0] * math.cos(self._yaw) + vel[1] * math.sin(self._yaw)
+            vel_fwd = float(ned_to_frd(vel, self._yaw)[0])
         else:
             vel_fwd = vel[0]
         yaw_rate = 0.0
@@ -500,7 +431,7 @@ class SimAutopilot:
                 return np.zeros(3), self.airborne
             cmd = self.setpoint_frd.copy()
             if self.setpoint_yaw_rad is not None:
-                error = (self.setpoint_yaw_rad - body.yaw_rad + math.pi) % (2 * math.pi) - math.pi
+                error = float(wrap_angle_rad(self.setpoint_yaw_rad - body.yaw_rad))
                 cmd[2] = float(np.clip(2.0 * error, -1.0, 1.0))
             if not self.airborne and cmd[1] >= -0.05:
                 return np.zeros(3), False  # on the ground, nothing pulls it up
@@ -537,11 +468,13 @@ class SimAutopilot:
         self.landed_since_s = None
         self.events("lifted_off", vehicle=self.index)
 
-    def crash(self, reason: str) -> None:
+    def crash(self, reason: str, outcome: str) -> None:
+        """The vehicle is lost: disarmed for good. ``outcome`` is the evaluation's code for it
+        (``collision_uav`` or ``collision_ground``, as :mod:`sitl.env`), ``reason`` the words."""
         if not self.crashed:
             self.crashed = True
             self.set_armed(False, f"crash: {reason}")
-            self.events("crash", vehicle=self.index, reason=reason)
+            self.events("crash", vehicle=self.index, reason=reason, outcome=outcome)
             self.statustext(mavlink.MAV_SEVERITY_EMERGENCY, f"Crash: {reason}"[:50])
 
     # ================================================================== telemetry
@@ -564,7 +497,7 @@ class SimAutopilot:
         self._heartbeat_now = False
         self._body = body
 
-    def _send_message(self, link: MavlinkUdpLink, msg_id: int, body: Body | None = None, force: bool = False) -> bool:
+    def _send_message(self, link: MavlinkUdpEndpoint, msg_id: int, body: Body | None = None, force: bool = False) -> bool:
         body = body or self._body
         R = mavlink
         mav = link.mav
@@ -582,10 +515,9 @@ class SimAutopilot:
         elif msg_id == R.MAVLINK_MSG_ID_ODOMETRY:
             if self.kind is not AutopilotKind.PX4:
                 return False
-            q = [math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)]
+            q = yaw_to_quaternion(yaw)
             if self.odometry_child_frame == "body_frd":  # PX4 up to 1.13: velocity in the body frame
-                c, s = math.cos(yaw), math.sin(yaw)
-                vel = [c * body.vel_ned[0] + s * body.vel_ned[1], -s * body.vel_ned[0] + c * body.vel_ned[1], body.vel_ned[2]]
+                vel = ned_to_frd(body.vel_ned, yaw).tolist()
                 child = R.MAV_FRAME_BODY_FRD
             else:
                 vel, child = list(body.vel_ned), R.MAV_FRAME_LOCAL_NED
@@ -598,9 +530,9 @@ class SimAutopilot:
         elif msg_id == R.MAVLINK_MSG_ID_ATTITUDE:
             mav.attitude_send(t_ms, 0.0, 0.0, yaw, 0.0, 0.0, body.yaw_rate_rad_s)
         elif msg_id == R.MAVLINK_MSG_ID_ATTITUDE_QUATERNION:
-            mav.attitude_quaternion_send(t_ms, math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2), 0.0, 0.0, body.yaw_rate_rad_s)
+            mav.attitude_quaternion_send(t_ms, *yaw_to_quaternion(yaw), 0.0, 0.0, body.yaw_rate_rad_s)
         elif msg_id == R.MAVLINK_MSG_ID_GLOBAL_POSITION_INT:
-            lat, lon = ned_to_latlon(body.pos_ned[0], body.pos_ned[1])
+            lat, lon, _ = ned_to_geodetic(body.pos_ned, HOME_LAT_DEG, HOME_LON_DEG, HOME_ALT_AMSL_M)
             hdg = int(round(math.degrees(yaw) % 360 * 100)) % 36000
             mav.global_position_int_send(t_ms, int(lat * 1e7), int(lon * 1e7),
                                          int((HOME_ALT_AMSL_M - body.pos_ned[2]) * 1000), int(-body.pos_ned[2] * 1000),
@@ -628,9 +560,3 @@ class SimAutopilot:
             return False
         return True
 
-
-def ned_to_latlon(north_m: float, east_m: float) -> tuple[float, float]:
-    """Flat-earth latitude/longitude of a local NED offset from the simulated home."""
-    lat = HOME_LAT_DEG + math.degrees(north_m / EARTH_RADIUS_M)
-    lon = HOME_LON_DEG + math.degrees(east_m / (EARTH_RADIUS_M * math.cos(math.radians(HOME_LAT_DEG))))
-    return lat, lon

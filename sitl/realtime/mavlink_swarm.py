@@ -34,7 +34,6 @@ import math
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -43,11 +42,15 @@ from pathlib import Path
 
 import numpy as np
 
-from sitl.metrics import UAVRecord
+from companion.spec import DEFAULT_CAMERA_SPEC, DEFAULT_TASK_SPEC
+from sitl.metrics import OUTCOMES, UAVRecord
+from sitl.realtime.camera_feed import DEFAULT_CAMERA_HZ
+from sitl.realtime.depth_transport import DEPTH_BASE_PORT
+from sitl.realtime.udp_endpoint import GCS_PORT, PX4_ONBOARD_BASE_PORT, MavlinkUdpEndpoint, mavlink
 from sitl.scenarios import ScenarioSample
 
-COLLISION_RADIUS_M = 0.3  # R, as sitl.vehicle and the in-process simulator use
-ARRIVAL_RADIUS_M = 0.5
+COLLISION_RADIUS_M = DEFAULT_TASK_SPEC.collision_radius_m  # R, as sitl.vehicle and the in-process simulator use
+ARRIVAL_RADIUS_M = DEFAULT_TASK_SPEC.arrival_radius_m
 START_MODES = ("ground", "airborne")
 
 
@@ -61,14 +64,14 @@ class MavlinkSettings:
 
     policy_path: str
     start: str = "ground"  # ground: companions arm and take off; airborne: vehicles start hovering
-    base_port: int = 14540  # companion i <-> vehicle i on base_port + i (PX4 SITL's onboard ports)
-    depth_port: int = 14640  # vehicle i's depth frames to depth_port + i
-    gcs_port: int = 14550  # every vehicle's ground-station link (this process)
+    base_port: int = PX4_ONBOARD_BASE_PORT  # companion i <-> vehicle i on base_port + i (PX4 SITL's onboard ports)
+    depth_port: int = DEPTH_BASE_PORT  # vehicle i's depth frames to depth_port + i
+    gcs_port: int = GCS_PORT  # every vehicle's ground-station link (this process)
     dynamics: str = "kinematic"
-    camera_hz: float = 30.0
-    camera_size: tuple[int, int] = (32, 32)
-    hfov_deg: float = 90.0
-    max_range_m: float = 20.0
+    camera_hz: float = DEFAULT_CAMERA_HZ
+    camera_size: tuple[int, int] = (DEFAULT_CAMERA_SPEC.width, DEFAULT_CAMERA_SPEC.height)
+    hfov_deg: float = DEFAULT_CAMERA_SPEC.hfov_deg
+    max_range_m: float = DEFAULT_CAMERA_SPEC.max_range_m
     time_limit_s: float = 40.0  # after the goals are sent
     ready_timeout_s: float = 120.0  # start-up, arming and takeoff
     companion_threads: int = 1  # torch threads per companion: N of them share the machine
@@ -181,45 +184,28 @@ class GroundStationLink:
     """
 
     def __init__(self, port: int) -> None:
-        from pymavlink.dialects.v20 import common as mavlink
-
         self.mavlink = mavlink
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
-            self.sock.bind(("127.0.0.1", port))
+            self.endpoint = MavlinkUdpEndpoint("gcs", ("127.0.0.1", port), 255, 190)
         except OSError as err:
-            self.sock.close()
             raise MavlinkSwarmError(f"ground-station port {port} is taken ({err}); choose another --gcs-port") from None
-        self.sock.setblocking(False)
-        self.parser = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
-        self.parser.robust_parsing = True
-        self.encoder = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
-        self.address: dict[int, tuple[str, int]] = {}
+
+    @property
+    def address(self) -> dict[int, tuple[str, int]]:
+        """Where each system talks from (system id -> address)."""
+        return self.endpoint.address_of
 
     def poll(self) -> None:
         """Read whatever arrived; remember where each system talks from."""
-        while True:
-            try:
-                data, addr = self.sock.recvfrom(65535)
-            except (BlockingIOError, InterruptedError):
-                return
-            except OSError:
-                return
-            try:
-                messages = self.parser.parse_buffer(data) or []
-            except self.mavlink.MAVError:
-                continue
-            for msg in messages:
-                self.address[msg.get_srcSystem()] = addr
+        self.endpoint.receive()
 
     def send_goal(self, vehicle: int, goal_ned: np.ndarray) -> None:
-        msg = self.encoder.set_position_target_local_ned_encode(
+        self.endpoint.encoder_for(vehicle + 1).set_position_target_local_ned_send(
             0, vehicle + 1, 191, self.mavlink.MAV_FRAME_LOCAL_NED, 0b110111111000,
             float(goal_ned[0]), float(goal_ned[1]), float(goal_ned[2]), 0, 0, 0, 0, 0, 0, math.nan, math.nan)
-        self.sock.sendto(msg.pack(self.encoder), self.address[vehicle + 1])
 
     def close(self) -> None:
-        self.sock.close()
+        self.endpoint.close()
 
 
 # --------------------------------------------------------------------------- logs
@@ -317,7 +303,7 @@ def fly_episode(sample: ScenarioSample, episode: int, settings: MavlinkSettings,
         groups.stop([name for name in groups.procs if name != "world"])
         groups.stop(["world"] if "world" in groups.procs else [])
         gcs.close()
-    crashes = {int(r["vehicle"]): (float(r["t"]), str(r.get("reason", "")))
+    crashes = {int(r["vehicle"]): (float(r["t"]), str(r.get("outcome", "")))
                for r in JsonLinesTail(folder / "vehicle.jsonl").read() if r.get("event") == "crash"}
     records = _records_from_trace(trace, crashes, sample, t0, episode, settings.time_limit_s)
     companions = [_companion_stats(folder / f"{name}.jsonl", groups, name) for name in names]
@@ -408,7 +394,8 @@ def _records_from_trace(trace: list[dict], crashes: dict[int, tuple[float, str]]
                         t0: float, episode: int, time_limit_s: float) -> list[UAVRecord]:
     """Per-UAV outcomes and paths from the world's ground truth, with the in-process definitions.
 
-    ``crashes`` maps a vehicle to the time and reason of its crash event in the world's log.
+    ``crashes`` maps a vehicle to the time and outcome code (``collision_uav`` or
+    ``collision_ground``) of its crash event in the world's log.
     """
     flight = [r for r in trace if t0 <= r["t"] <= t0 + time_limit_s]
     n = len(sample.goal_ned)
@@ -424,8 +411,9 @@ def _records_from_trace(trace: list[dict], crashes: dict[int, tuple[float, str]]
             p = np.asarray(r["pos_ned"][i])
             path.append(p)
             if r["crashed"][i]:
-                crash_t, reason = crashes.get(i, (r["t"], ""))
-                outcome = "collision_uav" if "another vehicle" in reason else "collision_ground"
+                crash_t, outcome = crashes.get(i, (r["t"], "collision_ground"))
+                if outcome not in OUTCOMES:
+                    raise MavlinkSwarmError(f"episode {episode}: vehicle {i}'s crash has no outcome code ({outcome!r})")
                 end_t = min(crash_t, r["t"])
                 break
             if -p[2] < COLLISION_RADIUS_M:

@@ -2,7 +2,7 @@
 
 Vehicle ``i`` sends one UDP datagram per rendered frame to ``host:base_port + i``, where the
 companion's ``--camera sitl:<port>`` source listens. The sender can be told to fail like a
-real camera (``MAV_CMD_INJECT_FAILURE`` on the depth sensor, see :mod:`sitl.mavlink_autopilot`):
+real camera (``MAV_CMD_INJECT_FAILURE`` on the depth sensor, see :mod:`sitl.realtime.mavlink_autopilot`):
 stop sending (``off``), send truncated datagrams (``garbage``) or frames without a single
 valid pixel (``wrong``).
 """
@@ -17,6 +17,7 @@ import numpy as np
 from companion.depth_wire import encode_frame
 
 CAMERA_FAULTS = ("ok", "off", "garbage", "wrong")
+DEPTH_BASE_PORT = 14640  # vehicle i's frames go to 14640 + i by default (beside PX4's 14540 + i)
 
 
 class DepthFrameSender:

@@ -1,0 +1,126 @@
+"""The depth cameras of the real-time processes: their options, rendering, and sending to companions.
+
+``python -m sitl.vehicle`` and ``python -m sitl.world`` both render a forward depth camera per
+vehicle with :class:`sitl.camera.DepthCamera` (the other vehicles as UAV bodies, the ground and
+``--box``/``--cylinder`` obstacles) and send each frame to the companion at ``HOST:depth-port + i``
+(:mod:`sitl.realtime.depth_transport`). This module is that part, once.
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.spec import DEFAULT_CAMERA_SPEC, CameraSpec
+from sitl.camera import LANDED_CAMERA_HEIGHT_M, DepthCamera
+from sitl.cli_args import (
+    MAX_CAMERA_HZ,
+    MAX_SUPERSAMPLE,
+    box,
+    check_camera,
+    cylinder,
+    cylinder_rows,
+    finite_float,
+    float_range,
+    image_size,
+    int_range,
+    positive_float,
+)
+from sitl.realtime.depth_transport import DepthFrameSender
+
+DEFAULT_CAMERA_HZ = 30.0
+DEFAULT_SUPERSAMPLE = 4
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """What each vehicle's depth camera renders, and how often.
+
+    ``cylinders`` rows are the camera's (north, east, radius, z_top, z_bottom) and ``boxes``
+    rows (north, east, down, half north, half east, half down), metres in the world NED frame.
+    """
+
+    spec: CameraSpec = DEFAULT_CAMERA_SPEC
+    hz: float = DEFAULT_CAMERA_HZ
+    supersample: int = DEFAULT_SUPERSAMPLE
+    cylinders: tuple[tuple[float, ...], ...] = ()
+    boxes: tuple[tuple[float, ...], ...] = ()
+
+    def describe(self) -> dict:
+        """The camera as the ``ready`` event reports it."""
+        return {"size": [self.spec.width, self.spec.height], "hfov_deg": self.spec.hfov_deg, "hz": self.hz}
+
+
+def add_camera_arguments(parser: argparse.ArgumentParser, frame: str = "") -> None:
+    """``--camera-hz``, ``--camera-size``, ``--hfov``, ``--max-range``, ``--supersample``, ``--cylinder``, ``--box``.
+
+    ``frame`` names the obstacles' frame in the help (``"world"`` for the depth bridge).
+    """
+    spec = DEFAULT_CAMERA_SPEC
+    parser.add_argument("--camera-hz", type=float_range(0.0, MAX_CAMERA_HZ, low_open=True), default=DEFAULT_CAMERA_HZ,
+                        help=f"depth frame rate, up to {MAX_CAMERA_HZ:g} (default {DEFAULT_CAMERA_HZ:g}; use a multiple "
+                             "of the policy's control rate)")
+    parser.add_argument("--camera-size", type=image_size, default=(spec.width, spec.height), metavar="WxH",
+                        help=f"rendered resolution (default {spec.width}x{spec.height})")
+    parser.add_argument("--hfov", type=finite_float, default=spec.hfov_deg,
+                        help=f"horizontal field of view in degrees (default {spec.hfov_deg:g})")
+    parser.add_argument("--max-range", type=positive_float, default=spec.max_range_m,
+                        help=f"camera range in metres (default {spec.max_range_m:g})")
+    parser.add_argument("--supersample", type=int_range(1, MAX_SUPERSAMPLE), default=DEFAULT_SUPERSAMPLE,
+                        help=f"sub-rays per pixel side, 1..{MAX_SUPERSAMPLE} (default {DEFAULT_SUPERSAMPLE})")
+    where = f" ({frame} frame)" if frame else ""
+    parser.add_argument("--cylinder", type=cylinder, action="append", metavar="N,E,R[,H]",
+                        help=f"a vertical pole at N,E{where} of radius R (and height H, default 30 m); repeatable")
+    parser.add_argument("--box", type=box, action="append", metavar="N,E,D,HN,HE,HD",
+                        help=f"an axis-aligned box: centre and half sizes in {frame + ' ' if frame else ''}NED metres; "
+                             "repeatable")
+
+
+def check_camera_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Exit 2 unless the camera options make a valid camera; ``args.cylinder`` becomes camera rows."""
+    args.cylinder = cylinder_rows(args.cylinder)
+    check_camera(parser, args)
+
+
+def camera_config(args: argparse.Namespace) -> CameraConfig:
+    """The :class:`CameraConfig` of parsed (and checked) camera options."""
+    return CameraConfig(
+        spec=CameraSpec(width=args.camera_size[0], height=args.camera_size[1], hfov_deg=args.hfov,
+                        max_range_m=args.max_range),
+        hz=args.camera_hz, supersample=args.supersample,
+        cylinders=tuple(tuple(row) for row in args.cylinder or ()), boxes=tuple(tuple(row) for row in args.box or ()))
+
+
+class CameraFeed:
+    """Every vehicle's depth camera and the sender of its frames to ``host:base_port + i``."""
+
+    def __init__(self, config: CameraConfig, host: str, base_port: int, num_vehicles: int) -> None:
+        self.config = config
+        self.camera = DepthCamera(config.spec, supersample=config.supersample)
+        self.cylinders = np.asarray(config.cylinders, dtype=np.float64).reshape(1, -1, 5) if config.cylinders else None
+        self.boxes = np.asarray(config.boxes, dtype=np.float64).reshape(1, -1, 6) if config.boxes else None
+        self.sender = DepthFrameSender(host, base_port, num_vehicles, config.spec.hfov_deg, config.spec.max_range_m)
+
+    def render(self, camera_ned: np.ndarray, yaw_rad: np.ndarray) -> np.ndarray:
+        """Depth images [k, H, W] of cameras at ``camera_ned`` [k, 3], each seeing the others as UAVs.
+
+        A camera on the ground is raised to the landing gear's height (it sees over the grass).
+        """
+        camera_ned = np.array(camera_ned, dtype=np.float64)
+        camera_ned[:, 2] = np.minimum(camera_ned[:, 2], -LANDED_CAMERA_HEIGHT_M)
+        return self.camera.render(camera_ned, np.asarray(yaw_rad, dtype=np.float64), len(camera_ned),
+                                  boxes=self.boxes, cylinders=self.cylinders)
+
+    def render_and_send(self, vehicles: list[int], camera_ned: np.ndarray, yaw_rad: np.ndarray) -> None:
+        """Render the cameras of ``vehicles`` (indices, at ``camera_ned``/``yaw_rad``) and send each frame."""
+        depth = self.render(camera_ned, yaw_rad)
+        for k, vehicle in enumerate(vehicles):
+            self.sender.send(vehicle, depth[k])
+
+    def frames_sent(self, vehicle: int) -> int:
+        return int(self.sender.sent[vehicle])
+
+    def close(self) -> None:
+        self.sender.close()
