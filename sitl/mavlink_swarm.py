@@ -43,8 +43,8 @@ from pathlib import Path
 
 import numpy as np
 
-from sitl.metrics import UAVRecord
-from sitl.scenarios import ScenarioSample
+from sitl.sim.metrics import UAVRecord
+from sitl.sim.scenarios import ScenarioSample
 
 COLLISION_RADIUS_M = 0.3  # R, as sitl.vehicle and the in-process simulator use
 ARRIVAL_RADIUS_M = 0.5

@@ -55,10 +55,10 @@ from sitl.cli_args import (
     udp_port,
     udp_port_nonzero,
 )
-from sitl.camera import LANDED_CAMERA_HEIGHT_M, DepthCamera
-from sitl.collision import uav_uav_collisions
+from sitl.sim.camera import LANDED_CAMERA_HEIGHT_M, DepthCamera
+from sitl.sim.collision import uav_uav_collisions
 from sitl.depth_transport import DepthFrameSender
-from sitl.dynamics import DYNAMICS_NAMES, make_dynamics
+from sitl.sim.dynamics import DYNAMICS_NAMES, make_dynamics
 from sitl.event_log import EventLog
 from sitl.mavlink_autopilot import Body, MavlinkUdpLink, SimAutopilot
 

@@ -18,7 +18,7 @@ this process gives each of them a forward depth camera. It
   the origins' latitudes and longitudes (GPS_GLOBAL_ORIGIN, else HOME_POSITION less its local
   position), relative to the first vehicle's origin, whose local frame is the world frame;
   ``--spawn-offsets``, ``--offset-line`` or ``--spacing`` give them instead;
-* renders each vehicle's camera with :class:`sitl.camera.DepthCamera` (the other vehicles as
+* renders each vehicle's camera with :class:`sitl.sim.camera.DepthCamera` (the other vehicles as
   the simulator's UAV bodies, the ground and ``--box``/``--cylinder`` obstacles in the world
   frame) at ``--camera-hz`` and sends the frames to ``HOST:depth-port + i``
   (:mod:`sitl.depth_transport`), where ``companion --camera sitl:PORT`` listens: a companion
@@ -54,7 +54,7 @@ from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 from companion.flight_modes import MAV_AUTOPILOT_INVALID, AutopilotKind  # noqa: E402
 from companion.mavlink_link import normalize_connection  # noqa: E402
 from companion.spec import CameraSpec  # noqa: E402
-from sitl.camera import LANDED_CAMERA_HEIGHT_M, DepthCamera  # noqa: E402
+from sitl.sim.camera import LANDED_CAMERA_HEIGHT_M, DepthCamera  # noqa: E402
 from sitl.cli_args import (
     ArgumentParser,  # noqa: E402
     MAX_CAMERA_HZ,

@@ -15,7 +15,7 @@ from __future__ import annotations
 import json
 
 from companion.policy import load_policy
-from sitl.train import Trainer, parse_args
+from sitl.learn.trainer import Trainer, parse_args
 
 
 def test_one_uav_learns_to_reach_its_goal(tmp_path):

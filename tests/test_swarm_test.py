@@ -18,11 +18,11 @@ import pytest
 import torch
 
 from companion.spec import DEFAULT_ACTION_SPEC, CameraSpec
-from sitl import swarm_test
-from sitl.config import ScenarioConfig
-from sitl.metrics import UAVRecord, summarize
-from sitl.orca import OrcaParams, velocity_to_action
-from sitl.swarm_test import (EvalSettings, collision_rate, evaluate_method, main, markdown_table, paper_cells,
+from sitl.eval import evaluate as swarm_test
+from sitl.sim.config import ScenarioConfig
+from sitl.sim.metrics import UAVRecord, summarize
+from sitl.eval.orca import OrcaParams, velocity_to_action
+from sitl.eval.evaluate import (EvalSettings, collision_rate, evaluate_method, main, markdown_table, paper_cells,
                              resolve_method, run_paper)
 
 
@@ -37,8 +37,8 @@ needs_rvo = pytest.mark.skipif(
 @pytest.fixture(scope="module")
 def contract_policy(tmp_path_factory) -> Path:
     """A small untrained policy that follows the policy-file contract (16x16 depth)."""
-    from sitl.rl.agent import AgentConfig, SacAeAgent
-    from sitl.rl.export import export_policy
+    from sitl.learn.agent import AgentConfig, SacAeAgent
+    from sitl.learn.export import export_policy
 
     torch.manual_seed(0)
     torch.set_num_threads(1)
@@ -49,7 +49,7 @@ def contract_policy(tmp_path_factory) -> Path:
 
 
 def test_eval_seeds_are_the_trainers_evaluation_seeds():
-    from sitl.train import EVAL_SEED_OFFSET
+    from sitl.learn.trainer import EVAL_SEED_OFFSET
 
     assert swarm_test.EVAL_SEED_OFFSET == EVAL_SEED_OFFSET
     assert EvalSettings(seed=3).env_seed == EVAL_SEED_OFFSET + 3

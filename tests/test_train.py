@@ -15,10 +15,10 @@ import pytest
 import torch
 
 from companion.spec import DEFAULT_ACTION_SPEC, CameraSpec
-from sitl.rl.agent import AgentConfig, SacAeAgent
-from sitl.rl.buffer import FrameReplayBuffer
-from sitl.rl.vae import train_vae
-from sitl.train import parse_args, snapshot_counters
+from sitl.learn.agent import AgentConfig, SacAeAgent
+from sitl.learn.buffer import FrameReplayBuffer
+from sitl.learn.vae import train_vae
+from sitl.learn.trainer import parse_args, snapshot_counters
 
 REPO = Path(__file__).resolve().parent.parent
 

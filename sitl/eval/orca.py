@@ -90,7 +90,7 @@ def velocity_to_action(vel_ned: np.ndarray, yaw_rad: np.ndarray, params: OrcaPar
 
 
 class OrcaController:
-    """ORCA for every UAV of a :class:`sitl.env.SwarmEnv` (one RVO2-3D simulator per world).
+    """ORCA for every UAV of a :class:`sitl.sim.env.SwarmEnv` (one RVO2-3D simulator per world).
 
     Call it with the env after each reset or step; it reads the true state of the worlds
     (privileged sensing) and returns actions [M, 3]. UAVs that no longer act but are still

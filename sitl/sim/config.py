@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 
 from companion.spec import CameraSpec
-from sitl.camera import SceneGeometry, StereoNoise
+from sitl.sim.camera import SceneGeometry, StereoNoise
 
 #: UAVs per cubic metre of the random scenarios' box (paper IV.B).
 DENSITIES: dict[str, float] = {"small": 0.1, "medium": 0.06, "large": 0.04}

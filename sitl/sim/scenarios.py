@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sitl.config import ScenarioConfig
+from sitl.sim.config import ScenarioConfig
 
 
 @dataclass

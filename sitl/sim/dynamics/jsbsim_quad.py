@@ -73,7 +73,7 @@ import jsbsim
 import numba
 import numpy as np
 
-from sitl.dynamics.base import Dynamics
+from sitl.sim.dynamics.base import Dynamics
 
 FT_TO_M = 0.3048
 LBF_TO_N = 4.4482216152605
