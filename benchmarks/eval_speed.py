@@ -27,7 +27,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import torch  # noqa: E402
 
 from sitl.sim.config import ScenarioConfig  # noqa: E402
-from sitl.eval.evaluate import DEFAULT_POLICY, EvalSettings, evaluate_method, resolve_method  # noqa: E402
+from sitl.eval.evaluate import EvalSettings, evaluate_method  # noqa: E402
+from sitl.eval.methods import DEFAULT_POLICY, resolve_method  # noqa: E402
 
 
 def untrained_policy(path: Path) -> Path:

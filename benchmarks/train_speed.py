@@ -26,7 +26,7 @@ import torch
 from companion.spec import DEFAULT_ACTION_SPEC, CameraSpec
 from sitl.learn.agent import AgentConfig, SacAeAgent
 from sitl.learn.buffer import FrameReplayBuffer
-from sitl.learn.trainer import PRESETS, TrainConfig, make_sim_config
+from sitl.learn.config import PRESETS, TrainConfig, make_sim_config
 from sitl.sim.env import SwarmEnv
 
 

@@ -1,6 +1,6 @@
-"""``python -m sitl.train``: train the shared collision-avoidance policy (the code is :mod:`sitl.learn.trainer`)."""
+"""``python -m sitl.train``: train the shared collision-avoidance policy (the command line is :mod:`sitl.learn.cli`)."""
 
-from sitl.learn.trainer import main
+from sitl.learn.cli import main
 
 if __name__ == "__main__":
     raise SystemExit(main())

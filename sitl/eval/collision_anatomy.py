@@ -27,8 +27,8 @@ import numpy as np
 
 from sitl.sim.config import DENSITIES, ScenarioConfig, SimConfig
 from sitl.sim.env import COLLISION_UAV, SwarmEnv
-from sitl.eval.evaluate import (DEFAULT_POLICY, EvalSettings, EvaluationError, evaluate_method, resolve_method,
-                             sim_config_for)
+from sitl.eval.evaluate import EvalSettings, evaluate_method, sim_config_for
+from sitl.eval.methods import DEFAULT_POLICY, EvaluationError, resolve_method
 
 LOOKBACK_S = 1.0  # "could have seen it coming": in view at some step of this window before the collision
 TIME_BINS_S = (1.0, 2.0, 5.0)  # collision time since the episode start, for the table

@@ -153,3 +153,9 @@ class OrcaController:
         d = env.dynamics
         vel = self.new_velocities(d.pos_ned, d.vel_ned, env.goal_ned, env.acting, env.present)
         return velocity_to_action(vel, d.yaw_rad, self.params, self.spec)
+
+
+def orca_actor(env, params: OrcaParams = OrcaParams()):
+    """Privileged ORCA as an :data:`sitl.sim.episodes.Actor` for ``env`` (an ``ActorFactory``): it reads the true states."""
+    controller = OrcaController.for_env(env, params)
+    return lambda obs: controller.act_env(env)

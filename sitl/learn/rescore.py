@@ -27,8 +27,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from sitl.learn.trainer import (VALIDATION_SEED_OFFSET, AgentConfig, TrainConfig, evaluate_scenario, make_agent,
-                        make_sim_config, select_snapshot)
+from sitl.learn.agent import AgentConfig
+from sitl.learn.config import TrainConfig, make_sim_config
+from sitl.learn.trainer import agent_actor, evaluate_scenario, make_agent, select_snapshot
+from sitl.sim.episodes import ActorFactory
+from sitl.sim.scenarios import VALIDATION_SEED_OFFSET
 
 
 def load_run(run_dir: Path) -> tuple[TrainConfig, AgentConfig, list[dict]]:
@@ -43,15 +46,15 @@ def load_run(run_dir: Path) -> tuple[TrainConfig, AgentConfig, list[dict]]:
     return TrainConfig(**saved["train"]), AgentConfig(**saved["agent"]), json.loads(index_path.read_text())
 
 
-def snapshot_actor(cfg: TrainConfig, agent_cfg: AgentConfig, snapshot: Path):
-    """``act(depth, state) -> actions`` of a snapshot's deterministic actor."""
+def snapshot_actor(cfg: TrainConfig, agent_cfg: AgentConfig, snapshot: Path) -> ActorFactory:
+    """The factory of a snapshot's deterministic actor."""
     agent = make_agent(agent_cfg, make_sim_config(cfg, 1))
     try:
         agent.load_state_dict(torch.load(snapshot, weights_only=True))
     except Exception as err:  # noqa: BLE001 - a corrupt file or other networks: the same clear refusal
         raise ValueError(f"{snapshot}: not a snapshot of this run's networks ({str(err)[:200]})") from None
     agent.eval()
-    return lambda depth, state: agent.act(depth, state, explore=False)
+    return agent_actor(agent)
 
 
 #: one scene to fly: (name, scenario, UAVs, random-scene density)
@@ -64,12 +67,12 @@ def scenes_of(densities: list[str], circle_uavs: list[int], random_uavs: int) ->
            [(f"circle-n{n}", "circle", n, "medium") for n in circle_uavs]
 
 
-def rescore_snapshot(cfg: TrainConfig, act, scenes: list[Scene], episodes: int) -> dict:
-    """Success and SPL of one actor in every scene on the validation seeds, and its score."""
+def rescore_snapshot(cfg: TrainConfig, make_actor: ActorFactory, scenes: list[Scene], episodes: int) -> dict:
+    """Success and SPL of one controller in every scene on the validation seeds, and its score."""
     results: dict[str, dict] = {}
     for name, scenario, uavs, density in scenes:
         scene_cfg = replace(cfg, num_uavs=uavs, density=density)
-        summary = evaluate_scenario(act, scene_cfg, scenario, episodes, VALIDATION_SEED_OFFSET + cfg.seed)
+        summary = evaluate_scenario(make_actor, scene_cfg, scenario, episodes, VALIDATION_SEED_OFFSET + cfg.seed)
         results[name] = {"success_rate": summary["success_rate"], "spl": summary["spl"],
                          "success_ci95_half_width": summary["success_ci95_half_width"]}
     return {"episodes": episodes, "scenes": results, "score": selection_score(results)}

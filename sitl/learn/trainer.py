@@ -1,241 +1,60 @@
-"""``python -m sitl.train``: train the shared collision-avoidance policy (paper Alg. 1).
+"""The training loop (paper Alg. 1) and the factories that build its parts (``make_*``).
 
 All UAVs of all simulated worlds act with one policy and feed one replay buffer
-(centralised training, decentralised execution). The loop alternates environment steps
-and gradient updates; the agent and its equations are in :mod:`sitl.learn.agent`.
-
-Presets (``--preset``):
-
-* ``fast`` (default) — trains on a 2-core laptop in under 2 hours: 32x32 depth, four
-  worlds of 8 UAVs stepped together, one update per environment step (32 transitions), a
-  fixed budget of updates, initial temperature 0.01 and 5-step returns
-  (see ``PRESETS`` for why). Every other hyperparameter is the paper's Table I.
-* ``paper`` — Table I literally: one world of 8 UAVs, 200 episodes, 400 updates after
-  each episode, replay capacity 20,000, 64x64 depth.
-
-Everything is a command-line flag (``--help``); a run directory holds ``config.json``,
-TensorBoard logs (``tb/``), ``learning_curve.png``, ``checkpoint.pt`` (``--resume RUN_DIR``
-continues from it) and the exported ``policy.pt``.
+(centralised training, decentralised execution). :func:`make_trainer` builds the
+environment, the VAE (method ``vae``: trained here, before the trainer exists), the agent
+and the buffer; :class:`Trainer` runs the loop, validates, checkpoints and exports.
+The agent and its equations are in :mod:`sitl.learn.agent`; the command line is
+``python -m sitl.train`` (:mod:`sitl.learn.cli`).
 """
 
 from __future__ import annotations
 
-import argparse
-import dataclasses
 import json
 import math
 import os
 import pickle
-import shutil
 import sys
 import time
 import warnings
-from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from companion.spec import DEFAULT_ACTION_SPEC, CameraSpec
-from sitl.cli_args import MAX_THREADS, ArgumentParser, finite_float, integer
-from sitl.sim.config import TRAINING_SCENARIOS, RewardConfig, ScenarioConfig, SimConfig, density_from_name
-from sitl.sim.env import SwarmEnv
-from sitl.sim.metrics import summarize
-from sitl.learn.agent import METHODS, AgentConfig, SacAeAgent
+from companion.spec import DEFAULT_ACTION_SPEC, STATE_DIM
+from sitl.learn.agent import AgentConfig, SacAeAgent
 from sitl.learn.buffer import FrameReplayBuffer
+from sitl.learn.config import TrainConfig, evaluation_scenarios, make_sim_config
 from sitl.learn.export import export_policy
-
-EVAL_SEED_OFFSET = 1_000_000  # test seeds (final evaluation, swarm_test) are >= this; training seeds are below it
-#: Periodic evaluations during training (and snapshot selection) use their own seeds, so
-#: choosing a snapshot never looks at the test episodes.
-VALIDATION_SEED_OFFSET = 500_000
-
-
-def _param(default, help: str):
-    return field(default=default, metadata={"help": help})
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    """Everything a training run depends on besides the agent's hyperparameters."""
-
-    preset: str = _param("fast", "fast (CPU, < 2 h) or paper (Table I literally); explicit flags override it")
-    method: str = _param("sac_ae", f"learning method: {', '.join(METHODS)}")
-    scenario: str = _param("random", "training scenario: random, circle or mixed (each episode one of the two)")
-    circle_fraction: float = _param(0.5, "mixed scenario: probability that an episode is a circle episode")
-    density: str = _param("medium", "random scenario density: small, medium, large or UAV/m^3")
-    circle_radius_m: float = _param(12.0, "circle scenario radius in m")
-    yaw_jitter_deg: float = _param(45.0, "random scenario: initial heading error from the goal bearing, up to +-deg")
-    arrival_radius_m: float = _param(0.5, "distance to the goal that counts as arrival (paper: 0.5 m)")
-    num_uavs: int = _param(8, "UAVs per world")
-    num_worlds: int = _param(4, "worlds stepped together (vectorised rollouts)")
-    image_size: int = _param(32, "depth image side in pixels (square, 90 deg FOV)")
-    max_episode_steps: int = _param(200, "episode time limit in 0.1 s steps")
-    batch_size: int = _param(128, "Table I: batch size")
-    replay_capacity: int = _param(50_000, "transitions kept (Table I: 20000)")
-    max_episodes: int = _param(0, "stop after this many world episodes (0: no limit; Table I: 200)")
-    total_updates: int = _param(25_000, "stop after this many gradient updates (0: no limit)")
-    updates_per_episode: int = _param(0, "updates owed per finished world episode (Table I: 400)")
-    updates_per_env_step: float = _param(1.0, "updates owed per vectorised environment step")
-    init_steps: int = _param(2_000, "transitions of uniform random actions before learning starts")
-    eval_every_updates: int = _param(2_500, "validate the deterministic policy every so many updates (0: never)")
-    eval_episodes: int = _param(20, "episodes per periodic validation (validation seeds, disjoint from training and test)")
-    select_best: bool = _param(False, "keep the networks of every validation and export the best one (highest mean "
-                                      "validation success over the evaluation scenarios; later wins ties)")
-    final_eval_episodes: int = _param(500, "episodes of the final evaluation recorded in policy.json (the random scene's success needs ~500 for +-1 point)")
-    checkpoint_every_s: float = _param(300.0, "seconds between checkpoints")
-    seed: int = _param(0, "seed of the environment, the buffer and torch")
-    device: str = _param("cpu", "torch device: cpu or cuda")
-    threads: int = _param(2, "torch intra-op threads")
-    run_dir: str = _param("", "run directory (default runs/<method>-<scenario>-<density>-s<seed>-<time>)")
-    vae_policy: str = _param("", "vae method: policy.pt that flies while depth images are collected")
-    vae_images: int = _param(20_000, "vae method: stacked depth images to collect")
-    vae_epochs: int = _param(20, "vae method: training epochs of the VAE")
-    init_from: str = _param("", "start from the networks of another run (a curriculum stage): its directory or "
-                                "checkpoint.pt (optimiser states carried over) or a validated snapshot "
-                                "snapshots/agent_<updates>.pt; its updates and wall time count in this run's provenance")
-
-    def __post_init__(self) -> None:
-        if self.preset not in PRESETS:
-            raise ValueError(f"unknown preset {self.preset!r}; choose one of {', '.join(PRESETS)}")
-        if self.method not in METHODS:
-            raise ValueError(f"unknown method {self.method!r}; choose one of {', '.join(METHODS)}")
-        if self.scenario not in TRAINING_SCENARIOS:
-            raise ValueError(f"unknown scenario {self.scenario!r}; choose one of {', '.join(TRAINING_SCENARIOS)}")
-        if not 0.0 <= self.circle_fraction <= 1.0:
-            raise ValueError(f"circle_fraction must be in [0, 1], got {self.circle_fraction}")
-        if not math.isfinite(density_from_name(self.density)):
-            raise ValueError(f"density must be a finite number of UAV/m^3, got {self.density!r}")
-        # Integer ranges: the upper ends keep a typo from allocating (or promising) the impossible.
-        for name, low, high in TRAIN_INT_RANGES:
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
-                raise ValueError(f"{name} must be an integer in {low}..{high}, got {value!r}")
-        # Float ranges written so that NaN fails them too.
-        if not 0.0 < self.arrival_radius_m <= 100.0:
-            raise ValueError(f"arrival_radius_m must be in (0, 100], got {self.arrival_radius_m}")
-        if not 0.0 < self.circle_radius_m <= 10_000.0:
-            raise ValueError(f"circle_radius_m must be in (0, 10000], got {self.circle_radius_m}")
-        if not 0.0 <= self.yaw_jitter_deg <= 180.0:
-            raise ValueError(f"yaw_jitter_deg must be in [0, 180], got {self.yaw_jitter_deg}")
-        if not 0.0 <= self.updates_per_env_step <= 10_000.0:
-            raise ValueError(f"updates_per_env_step must be in [0, 10000], got {self.updates_per_env_step}")
-        if not 0.0 < self.checkpoint_every_s < math.inf:
-            raise ValueError(f"checkpoint_every_s must be a finite number > 0, got {self.checkpoint_every_s}")
-        try:
-            torch.device(self.device)
-        except RuntimeError:
-            raise ValueError(f"unknown torch device {self.device!r}; use cpu or cuda") from None
-        if self.image_size < 16:
-            raise ValueError(f"image_size must be >= 16 (the encoder shrinks it by 14 pixels), got {self.image_size}")
-        if self.max_episodes <= 0 and self.total_updates <= 0:
-            raise ValueError("set max_episodes or total_updates: the run needs an end")
-        if self.updates_per_episode <= 0 and self.updates_per_env_step <= 0:
-            raise ValueError("set updates_per_episode or updates_per_env_step: the run needs updates")
-        if self.device.startswith("cuda") and not torch.cuda.is_available():
-            raise ValueError("--device cuda asked for, but torch sees no CUDA device")
-
-
-#: (field, lowest, highest) of TrainConfig's integers.
-TRAIN_INT_RANGES = (
-    ("num_uavs", 1, 1000), ("num_worlds", 1, 1000), ("image_size", 1, 256), ("max_episode_steps", 1, 100_000),
-    ("batch_size", 1, 100_000), ("replay_capacity", 1, 10_000_000), ("max_episodes", 0, 10**9),
-    ("total_updates", 0, 10**9), ("updates_per_episode", 0, 1_000_000), ("init_steps", 0, 10**9),
-    ("eval_every_updates", 0, 10**9), ("eval_episodes", 1, 1_000_000), ("final_eval_episodes", 0, 1_000_000),
-    ("seed", 0, 2**32 - 1), ("threads", 1, MAX_THREADS), ("vae_images", 1, 10_000_000), ("vae_epochs", 1, 100_000),
-)
-
-#: Each preset sets training and agent fields; explicit flags override it. The dataclass
-#: defaults are the fast preset's training values and the paper's agent values.
-PRESETS: dict[str, dict[str, dict]] = {
-    # Measured choices for a 2-core CPU (docs/training.md): 32x32 images (the paper's 1024
-    # hidden units stay: at 32x32 they cost only ~4 % more than 256), a lower initial temperature
-    # (the reference's 0.1 is tuned for DMC rewards of ~1 per step; here progress pays
-    # <= 0.6 per step and the entropy bonus drowned it) and 5-step returns (one-step targets
-    # with tau 0.01 propagated the arrival reward over the ~40-step episodes too slowly).
-    "fast": {"train": {}, "agent": {"init_temperature": 0.01, "n_step": 5}},
-    "paper": {"train": {"num_worlds": 1, "image_size": 64, "replay_capacity": 20_000, "max_episodes": 200,
-                        "total_updates": 0, "updates_per_episode": 400, "updates_per_env_step": 0.0,
-                        "init_steps": 1_000},
-              "agent": {}},
-}
-
-
-# --------------------------------------------------------------------------- command line
-
-def _add_dataclass_flags(parser: argparse.ArgumentParser, cls, title: str) -> None:
-    group = parser.add_argument_group(title)
-    for f in fields(cls):
-        if any(a.dest == f.name for a in parser._actions):
-            continue  # e.g. method: one flag sets both configs
-        flag = "--" + f.name.replace("_", "-")
-        kind = {float: finite_float, int: integer}.get(type(f.default), type(f.default))
-        help_text = f.metadata.get("help", "") + f" (default: {f.default})"
-        if type(f.default) is bool:
-            group.add_argument(flag, dest=f.name, action=argparse.BooleanOptionalAction, default=argparse.SUPPRESS,
-                               help=help_text)
-        else:
-            group.add_argument(flag, dest=f.name, type=kind, default=argparse.SUPPRESS, help=help_text)
-
-
-def parse_args(argv: list[str] | None = None) -> tuple[TrainConfig, AgentConfig, str | None]:
-    """Build the two configs: defaults, then the preset, then explicit flags."""
-    parser = ArgumentParser(prog="python -m sitl.train", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--resume", metavar="RUN_DIR", default=None, help="continue the run in RUN_DIR from its checkpoint")
-    _add_dataclass_flags(parser, TrainConfig, "training")
-    _add_dataclass_flags(parser, AgentConfig, "agent (paper Table I; reference train.py where the paper is silent)")
-    args = vars(parser.parse_args(argv))
-    resume = args.pop("resume")
-    train_names = {f.name for f in fields(TrainConfig)}
-    train_args = {k: v for k, v in args.items() if k in train_names}
-    agent_args = {k: v for k, v in args.items() if k not in train_names}
-    try:
-        preset = train_args.get("preset", "fast")
-        if preset not in PRESETS:
-            raise ValueError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
-        train_cfg = TrainConfig(**{**PRESETS[preset]["train"], **train_args})
-        agent_cfg = AgentConfig(**{**PRESETS[preset]["agent"], "method": train_cfg.method, **agent_args})
-    except ValueError as err:
-        parser.error(str(err))
-    return train_cfg, agent_cfg, resume
-
-
-# --------------------------------------------------------------------------- pieces
-
-def make_sim_config(cfg: TrainConfig, num_worlds: int, record_paths: bool = False,
-                    scenario_name: str | None = None) -> SimConfig:
-    """The worlds of ``cfg`` (``scenario_name`` overrides its scenario, e.g. for evaluation)."""
-    scenario = ScenarioConfig(name=scenario_name or cfg.scenario, density=density_from_name(cfg.density),
-                              circle_radius_m=cfg.circle_radius_m, yaw_jitter_rad=math.radians(cfg.yaw_jitter_deg),
-                              circle_fraction=cfg.circle_fraction)
-    camera = CameraSpec(width=cfg.image_size, height=cfg.image_size)
-    return SimConfig(num_uavs=cfg.num_uavs, num_worlds=num_worlds, scenario=scenario, camera=camera,
-                     max_episode_steps=cfg.max_episode_steps, record_paths=record_paths,
-                     reward=RewardConfig(arrival_radius_m=cfg.arrival_radius_m))
-
+from sitl.sim.config import SimConfig
+from sitl.sim.env import SwarmEnv
+from sitl.sim.episodes import ActorFactory, depth_state_actor, run_episodes
+from sitl.sim.metrics import summarize
+from sitl.sim.scenarios import EVAL_SEED_OFFSET, VALIDATION_SEED_OFFSET
 
 #: Evaluation episodes flown at once as parallel worlds (as ``swarm_test --batch``).
 EVAL_BATCH_WORLDS = 100
 
 
-def evaluate(act, sim_config: SimConfig, seed: int, episodes: int) -> dict:
-    """Fly ``episodes`` episodes of ``act(depth, state) -> actions``, ``sim_config.num_worlds`` at a time.
+def evaluate_scenario(make_actor: ActorFactory, cfg: TrainConfig, scenario_name: str, episodes: int,
+                      seed: int) -> dict:
+    """Summary of ``episodes`` episodes of ``cfg``'s worlds in one scenario, up to ``EVAL_BATCH_WORLDS`` at a time.
 
-    The episodes are those of ``swarm_test`` with the same seed (``SwarmEnv.fly_episodes``).
+    The episodes are ``swarm_test``'s starts and goals for the same seed and scenario
+    (:func:`sitl.sim.episodes.run_episodes`), flown with ``cfg.max_episode_steps`` as the time
+    limit (the trainer's, 200 steps by default; ``swarm_test`` flies 400).
     """
-    env = SwarmEnv(sim_config, seed=seed)
-    return summarize(env.fly_episodes(env.reset(), lambda obs: act(obs.depth, obs.state), episodes))
+    sim_config = make_sim_config(cfg, min(episodes, EVAL_BATCH_WORLDS), scenario_name=scenario_name)
+    return summarize(run_episodes(make_actor, sim_config, seed, episodes))
 
 
-def evaluation_scenarios(cfg: TrainConfig) -> tuple[str, ...]:
-    """The scenarios a run is evaluated on: its own, or both halves of a mixed one."""
-    return ("random", "circle") if cfg.scenario == "mixed" else (cfg.scenario,)
+def agent_actor(agent: SacAeAgent) -> ActorFactory:
+    """The factory of a training agent's deterministic actor."""
+    return depth_state_actor(lambda depth, state: agent.act(depth, state, explore=False))
 
 
-def default_run_dir(cfg: TrainConfig) -> Path:
-    stamp = time.strftime("%Y%m%d-%H%M%S")
-    return Path("runs") / f"{cfg.method}-{cfg.scenario}-{cfg.density}-s{cfg.seed}-{stamp}"
+
 
 
 def plot_learning_curve(history: dict, path: Path, title: str) -> None:
@@ -331,59 +150,48 @@ def make_agent(agent_cfg: AgentConfig, sim_config: SimConfig, device: str = "cpu
     return SacAeAgent(agent_cfg, cam, DEFAULT_ACTION_SPEC, device, vae_encoder)
 
 
-def evaluate_scenario(act, cfg: TrainConfig, scenario_name: str, episodes: int, seed: int) -> dict:
-    """``evaluate`` in ``cfg``'s worlds of one scenario, up to ``EVAL_BATCH_WORLDS`` at a time."""
-    sim_config = make_sim_config(cfg, min(episodes, EVAL_BATCH_WORLDS), scenario_name=scenario_name)
-    return evaluate(act, sim_config, seed=seed, episodes=episodes)
-
-
-def build_vae_encoder(cfg: TrainConfig, sim_config: SimConfig, log) -> torch.nn.Module:
-    """RL+VAE's protocol: collect depth images with a trained policy, train a VAE, freeze it."""
-    from companion.policy import load_policy
-    from sitl.eval.baselines import straight_to_goal
-    from sitl.learn.vae import train_vae
-
-    if cfg.vae_policy:
-        policy = load_policy(cfg.vae_policy)
-        act = policy.act
-        log(f"collecting {cfg.vae_images} depth images with {cfg.vae_policy}")
-    else:
-        act = lambda depth, state: straight_to_goal(state)  # noqa: E731
-        log(f"no --vae-policy given: collecting {cfg.vae_images} depth images with the straight-to-goal reference")
-    env = SwarmEnv(sim_config, seed=cfg.seed + 7)
-    obs = env.reset()
-    images = []
-    count = 0
-    while count < cfg.vae_images:
-        rows = np.flatnonzero(env.acting)
-        images.append(obs.depth[rows].astype(np.float16))
-        count += len(rows)
-        obs, *_ = env.step(act(obs.depth, obs.state))
-        if env.world_done.any():
-            obs = env.reset_worlds(env.world_done)
-    data = np.concatenate(images)[: cfg.vae_images].astype(np.float32)
-    encoder, losses = train_vae(data, sim_config.camera.max_range_m, epochs=cfg.vae_epochs, seed=cfg.seed,
-                                progress=lambda e, loss: log(f"VAE epoch {e}/{cfg.vae_epochs}: loss {loss:.2f}"))
-    return encoder
-
-
 # --------------------------------------------------------------------------- the loop
 
-class Trainer:
-    """One training run: environment, agent, buffer, logs and checkpoints."""
+def make_env(cfg: TrainConfig) -> SwarmEnv:
+    """The training worlds of ``cfg`` (``cfg.num_worlds`` of them, seeded with ``cfg.seed``)."""
+    return SwarmEnv(make_sim_config(cfg, cfg.num_worlds), seed=cfg.seed)
 
-    def __init__(self, cfg: TrainConfig, agent_cfg: AgentConfig, run_dir: Path, resume: bool = False) -> None:
+
+def make_buffer(cfg: TrainConfig, env: SwarmEnv) -> FrameReplayBuffer:
+    """The replay buffer for ``env``'s UAVs and camera."""
+    cam = env.config.camera
+    return FrameReplayBuffer(cfg.replay_capacity, env.num_agents, cam.frames, cam.height, cam.width,
+                             STATE_DIM, DEFAULT_ACTION_SPEC.dim, seed=cfg.seed)
+
+
+def make_trainer(cfg: TrainConfig, agent_cfg: AgentConfig, run_dir: Path, resume: bool = False) -> "Trainer":
+    """Build a run's parts in order — environment, VAE (method ``vae``, trained now unless resuming:
+    the checkpoint holds it), agent, buffer — then the :class:`Trainer` that runs them."""
+    torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)  # before any network is built: the same seed gives the same run
+    env = make_env(cfg)
+    vae_encoder = None
+    if agent_cfg.method == "vae" and not resume:
+        from sitl.learn.vae_data import make_vae_encoder
+
+        vae_encoder = make_vae_encoder(env.config, cfg.seed, cfg.vae_images, cfg.vae_epochs, cfg.vae_policy,
+                                       log=Trainer.log)
+    agent = make_agent(agent_cfg, env.config, cfg.device, vae_encoder)
+    return Trainer(cfg, agent_cfg, run_dir, env, agent, make_buffer(cfg, env), resume=resume)
+
+
+class Trainer:
+    """One training run's loop: acting, learning, validation, logs, checkpoints and export.
+
+    Its parts are built beforehand (:func:`make_trainer`); constructing it only restores a
+    checkpoint (``resume``) or another run's networks (``cfg.init_from``).
+    """
+
+    def __init__(self, cfg: TrainConfig, agent_cfg: AgentConfig, run_dir: Path, env: SwarmEnv, agent: SacAeAgent,
+                 buffer: FrameReplayBuffer, resume: bool = False) -> None:
         self.cfg, self.agent_cfg, self.run_dir = cfg, agent_cfg, run_dir
-        torch.set_num_threads(cfg.threads)
-        torch.manual_seed(cfg.seed)
-        self.sim_config = make_sim_config(cfg, cfg.num_worlds)
-        self.env = SwarmEnv(self.sim_config, seed=cfg.seed)
-        trained_vae = build_vae_encoder(cfg, self.sim_config, self.log) \
-            if agent_cfg.method == "vae" and not resume else None
-        self.agent = make_agent(agent_cfg, self.sim_config, cfg.device, trained_vae)
-        cam = self.sim_config.camera
-        self.buffer = FrameReplayBuffer(cfg.replay_capacity, self.env.num_agents, cam.frames, cam.height, cam.width,
-                                        6, 3, seed=cfg.seed)
+        self.env, self.agent, self.buffer = env, agent, buffer
+        self.sim_config = env.config
         self.counters = {"env_steps": 0, "transitions": 0, "episodes": 0, "updates": 0, "wall_s": 0.0,
                          "update_credit": 0.0}
         self.history: dict[str, list] = {"episode": [], "return": [], "success": [], "eval_episode": [],
@@ -403,7 +211,8 @@ class Trainer:
         elif cfg.init_from:
             self._init_from(Path(cfg.init_from))
 
-    def log(self, message: str) -> None:
+    @staticmethod
+    def log(message: str) -> None:
         print(message, file=sys.stderr, flush=True)
 
     # -------------------------------------------------------------- checkpoints
@@ -475,8 +284,7 @@ class Trainer:
 
     def evaluate(self, episodes: int, seed_offset: int = EVAL_SEED_OFFSET) -> dict[str, dict]:
         """Deterministic evaluation on unseen seeds (test seeds by default), one summary per evaluation scenario."""
-        act = lambda d, s: self.agent.act(d, s, explore=False)  # noqa: E731
-        return {name: evaluate_scenario(act, self.cfg, name, episodes, seed_offset + self.cfg.seed)
+        return {name: evaluate_scenario(agent_actor(self.agent), self.cfg, name, episodes, seed_offset + self.cfg.seed)
                 for name in evaluation_scenarios(self.cfg)}
 
     def validate(self, write=print) -> None:
@@ -552,7 +360,7 @@ class Trainer:
             acting = env.acting.copy()
             rows = np.flatnonzero(acting)
             if k["transitions"] < cfg.init_steps and not cfg.init_from:
-                action = rng.uniform(low, high, size=(env.num_agents, 3)).astype(np.float32)
+                action = rng.uniform(low, high, size=(env.num_agents, env.action_spec.dim)).astype(np.float32)
             else:
                 action = agent.act(obs.depth, obs.state, explore=True)
             state = obs.state
@@ -667,44 +475,3 @@ class Trainer:
         return path
 
 
-def main(argv: list[str] | None = None) -> int:
-    cfg, agent_cfg, resume = parse_args(argv)
-    if resume:
-        run_dir = Path(resume)
-        if not (run_dir / "checkpoint.pt").is_file():
-            print(f"error: {run_dir} has no checkpoint.pt to resume from", file=sys.stderr)
-            return 2
-        try:
-            saved = json.loads((run_dir / "config.json").read_text())
-            cfg, agent_cfg = TrainConfig(**saved["train"]), AgentConfig(**saved["agent"])
-        except (OSError, ValueError, KeyError, TypeError) as err:
-            print(f"error: cannot resume {run_dir}: its config.json is missing or invalid ({err})", file=sys.stderr)
-            return 2
-    else:
-        run_dir = Path(cfg.run_dir) if cfg.run_dir else default_run_dir(cfg)
-        if run_dir.exists() and (not run_dir.is_dir() or any(run_dir.iterdir())):
-            print(f"error: run directory {run_dir} already exists and is not empty; "
-                  f"use --resume {run_dir} to continue it or choose another --run-dir", file=sys.stderr)
-            return 2
-        try:
-            run_dir.mkdir(parents=True, exist_ok=True)
-            cfg = replace(cfg, run_dir=str(run_dir))
-            (run_dir / "config.json").write_text(json.dumps(
-                {"train": dataclasses.asdict(cfg), "agent": dataclasses.asdict(agent_cfg)}, indent=2))
-        except OSError as err:
-            print(f"error: cannot create the run directory {run_dir}: {err.strerror}", file=sys.stderr)
-            return 2
-    try:
-        trainer = Trainer(cfg, agent_cfg, run_dir, resume=bool(resume))
-    except (FileNotFoundError, ValueError) as err:
-        if not resume:
-            shutil.rmtree(run_dir, ignore_errors=True)  # nothing was trained: leave no half-made run behind
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    trainer.log(f"run directory {run_dir}; replay buffer {trainer.buffer.nbytes / 2**20:.0f} MiB")
-    trainer.run()
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -12,6 +12,8 @@ DENSITIES: dict[str, float] = {"small": 0.1, "medium": 0.06, "large": 0.04}
 SCENARIOS = ("random", "circle")
 #: Training may also draw each world's episode from either scenario ("mixed").
 TRAINING_SCENARIOS = SCENARIOS + ("mixed",)
+#: The circle scenario's radius in m (paper IV.C: 8-32 UAVs on a circle, goals antipodal).
+CIRCLE_RADIUS_M = 12.0
 ARRIVED_BEHAVIOURS = ("hover", "remove")
 CRASHED_BEHAVIOURS = ("remove", "freeze")
 
@@ -56,7 +58,7 @@ class ScenarioConfig:
     min_separation_m: float = 1.0
     min_goal_distance_m: float = 2.0
     yaw_jitter_rad: float = 0.785398  # pi / 4
-    circle_radius_m: float = 12.0
+    circle_radius_m: float = CIRCLE_RADIUS_M
     circle_alt_m: float = 10.0
     circle_jitter_m: float = 0.25
     circle_fraction: float = 0.5
