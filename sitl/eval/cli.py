@@ -51,6 +51,7 @@ from sitl.eval.methods import BASELINES, DEFAULT_POLICY, EvaluationError, resolv
 from sitl.eval.paper import DEFAULT_FIG6_NS, PAPER_METHODS, paper_cells, parse_policies, run_paper
 from sitl.eval.report import _write_json, markdown_table
 from sitl.sim.config import CIRCLE_RADIUS_M, DENSITIES, SCENARIOS, ScenarioConfig, density_from_name
+from sitl.sim.dynamics import DYNAMICS_NAMES
 from sitl.sim.scenarios import EVAL_SEED_OFFSET
 
 #: Bounds of the evaluation's sizes: beyond them a run would only exhaust memory or never end.
@@ -72,7 +73,7 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
                         help="episodes per evaluation (default 100; 10 with --mavlink, which flies in real time)")
     parser.add_argument("--seed", type=int_range(0), default=0,
                         help=f"evaluation seed; the simulator uses {EVAL_SEED_OFFSET} + SEED, disjoint from training")
-    parser.add_argument("--dynamics", choices=("kinematic", "jsbsim"), default="kinematic",
+    parser.add_argument("--dynamics", choices=DYNAMICS_NAMES, default=DYNAMICS_NAMES[0],
                         help="UAV dynamics (default kinematic)")
     parser.add_argument("--camera-noise", action=argparse.BooleanOptionalAction, default=False,
                         help="stereo depth noise and dropouts (default off: perfect depth)")

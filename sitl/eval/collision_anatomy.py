@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sitl.sim.config import DENSITIES, ScenarioConfig, SimConfig
+from sitl.sim.config import CIRCLE_RADIUS_M, DENSITIES, ScenarioConfig, SimConfig
 from sitl.sim.env import COLLISION_UAV, SwarmEnv
 from sitl.eval.evaluate import EvalSettings, evaluate_method, sim_config_for
 from sitl.eval.methods import DEFAULT_POLICY, EvaluationError, resolve_method
@@ -157,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--policy", default=str(DEFAULT_POLICY), help="policy file or baseline name")
     parser.add_argument("--scenario", choices=("random", "circle"), default="random")
     parser.add_argument("--density", choices=tuple(DENSITIES), default="medium")
-    parser.add_argument("--radius", type=float, default=12.0, help="circle radius (m)")
+    parser.add_argument("--radius", type=float, default=CIRCLE_RADIUS_M, help="circle radius (m)")
     parser.add_argument("--n", type=int, default=8, help="UAVs per episode")
     parser.add_argument("--episodes", type=int, default=100, help="episodes")
     parser.add_argument("--seed", type=int, default=0, help="evaluation seed (episodes of 1,000,000 + seed)")

@@ -17,7 +17,8 @@ import numpy as np
 
 from sitl.cli_args import positive_int
 from sitl.eval.baselines import straight_to_goal
-from sitl.sim.config import DENSITIES, SCENARIOS, ScenarioConfig, SimConfig, density_from_name
+from sitl.sim.config import CIRCLE_RADIUS_M, DENSITIES, SCENARIOS, ScenarioConfig, SimConfig, density_from_name
+from sitl.sim.dynamics import DYNAMICS_NAMES
 from sitl.sim.env import SwarmEnv
 from sitl.sim.metrics import UAVRecord, summarize
 
@@ -29,9 +30,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--scenario", choices=SCENARIOS, default="circle", help="scenario (default circle)")
     parser.add_argument("--density", default="medium",
                         help=f"random scenario density: {', '.join(DENSITIES)} or UAV/m^3 (default medium)")
-    parser.add_argument("--radius", type=float, default=12.0, help="circle radius in m (default 12)")
+    parser.add_argument("--radius", type=float, default=CIRCLE_RADIUS_M, help=f"circle radius in m (default {CIRCLE_RADIUS_M:g})")
     parser.add_argument("--episodes", type=positive_int, default=10, help="episodes, run in parallel (default 10)")
-    parser.add_argument("--dynamics", choices=("kinematic", "jsbsim"), default="kinematic")
+    parser.add_argument("--dynamics", choices=DYNAMICS_NAMES, default=DYNAMICS_NAMES[0])
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=Path("runs/demo"), help="output folder (default runs/demo)")
     args = parser.parse_args(argv)
