@@ -27,9 +27,9 @@ os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 from companion.spec import CameraSpec  # noqa: E402
-from sitl.camera import DepthCamera  # noqa: E402
-from sitl.config import SimConfig  # noqa: E402
-from sitl.env import SwarmEnv  # noqa: E402
+from sitl.sim.camera import DepthCamera  # noqa: E402
+from sitl.sim.config import SimConfig  # noqa: E402
+from sitl.sim.env import SwarmEnv  # noqa: E402
 
 
 def covered_pixels(size: int, distance_m: float, bearing_deg: float) -> int:

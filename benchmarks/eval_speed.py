@@ -26,15 +26,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import torch  # noqa: E402
 
-from sitl.config import ScenarioConfig  # noqa: E402
-from sitl.swarm_test import DEFAULT_POLICY, EvalSettings, evaluate_method, resolve_method  # noqa: E402
+from sitl.sim.config import ScenarioConfig  # noqa: E402
+from sitl.eval.evaluate import EvalSettings, evaluate_method  # noqa: E402
+from sitl.eval.methods import DEFAULT_POLICY, resolve_method  # noqa: E402
 
 
 def untrained_policy(path: Path) -> Path:
     """Export a randomly initialised fast-preset actor (same network size as a trained policy)."""
     from companion.spec import DEFAULT_ACTION_SPEC, CameraSpec
-    from sitl.rl.agent import AgentConfig, SacAeAgent
-    from sitl.rl.export import export_policy
+    from sitl.learn.agent import AgentConfig, SacAeAgent
+    from sitl.learn.export import export_policy
 
     torch.manual_seed(0)
     agent = SacAeAgent(AgentConfig(), CameraSpec(width=32, height=32), DEFAULT_ACTION_SPEC)

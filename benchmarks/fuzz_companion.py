@@ -53,7 +53,6 @@ import json
 import math
 import os
 import random
-import re
 import select
 import socket
 import sys

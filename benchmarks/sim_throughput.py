@@ -23,9 +23,9 @@ import time
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 
 
-from sitl.baselines import straight_to_goal  # noqa: E402
-from sitl.config import SimConfig  # noqa: E402
-from sitl.env import SwarmEnv  # noqa: E402
+from sitl.eval.baselines import straight_to_goal  # noqa: E402
+from sitl.sim.config import SimConfig  # noqa: E402
+from sitl.sim.env import SwarmEnv  # noqa: E402
 
 
 def measure(num_uavs: int, num_worlds: int, seconds: float) -> dict:

@@ -24,10 +24,10 @@ import numpy as np
 import torch
 
 from companion.spec import DEFAULT_ACTION_SPEC, CameraSpec
-from sitl.rl.agent import AgentConfig, SacAeAgent
-from sitl.rl.buffer import FrameReplayBuffer
-from sitl.train import PRESETS, TrainConfig, make_sim_config
-from sitl.env import SwarmEnv
+from sitl.learn.agent import AgentConfig, SacAeAgent
+from sitl.learn.buffer import FrameReplayBuffer
+from sitl.learn.config import PRESETS, TrainConfig, make_sim_config
+from sitl.sim.env import SwarmEnv
 
 
 def update_rate(method: str, size: int, hidden: int, seconds: float) -> float:

@@ -2,7 +2,7 @@
 
 It casts every sub-ray of the high-resolution image against every object with unit
 direction vectors and Euclidean hit distances, converts them to planar depth, and
-min-pools — sharing no code with :mod:`sitl.camera` except the camera spec.
+min-pools — sharing no code with :mod:`sitl.sim.camera` except the camera spec.
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from companion.spec import CameraSpec
-from sitl.camera import DepthCamera, SceneGeometry, StereoNoise
+from sitl.sim.camera import DepthCamera, SceneGeometry, StereoNoise
 from tests.reference_camera import render_reference
 
 

@@ -40,31 +40,31 @@ def _world(argv):
 
 
 def _swarm_test(argv):
-    from sitl import swarm_test
+    from sitl.eval import cli as swarm_test
 
     return swarm_test.parse_args(argv)
 
 
 def _swarm_test_main(argv):  # errors found after parsing (the policy file, the output folder)
-    from sitl import swarm_test
+    from sitl.eval import cli as swarm_test
 
     return swarm_test.main(argv)
 
 
 def _paper(argv):
-    from sitl import swarm_test
+    from sitl.eval import cli as swarm_test
 
     return swarm_test.parse_paper_args(argv)
 
 
 def _train(argv):
-    from sitl import train
+    from sitl.learn import cli as train
 
     return train.parse_args(argv)
 
 
 def _train_main(argv):  # errors found after parsing (run directory, resume)
-    from sitl import train
+    from sitl.learn import cli as train
 
     return train.main(argv)
 

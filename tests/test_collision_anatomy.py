@@ -5,9 +5,9 @@ import math
 
 import numpy as np
 
-from sitl.collision_anatomy import analyse, in_view, main
-from sitl.config import ScenarioConfig
-from sitl.swarm_test import EvalSettings
+from sitl.eval.collision_anatomy import analyse, in_view, main
+from sitl.sim.config import ScenarioConfig
+from sitl.eval.evaluate import EvalSettings
 
 HALF_PI = math.pi / 2
 

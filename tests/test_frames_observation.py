@@ -17,7 +17,7 @@ from companion.observation import (
     validate_depth_frame,
 )
 from companion.spec import DEFAULT_ACTION_SPEC, CameraSpec
-from sitl.dynamics import KinematicDynamics
+from sitl.sim.dynamics import KinematicDynamics
 
 
 def test_heading_frame_rotation():

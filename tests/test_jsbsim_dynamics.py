@@ -12,8 +12,8 @@ import pytest
 
 pytest.importorskip("jsbsim")
 
-from sitl.dynamics import make_dynamics  # noqa: E402
-from sitl.dynamics.jsbsim_quad import JSBSimDynamics  # noqa: E402
+from sitl.sim.dynamics import make_dynamics  # noqa: E402
+from sitl.sim.dynamics.jsbsim_quad import JSBSimDynamics  # noqa: E402
 
 _trapezoid = getattr(np, "trapezoid", None) or np.trapz  # numpy < 2 has only trapz
 

@@ -15,7 +15,8 @@ from __future__ import annotations
 import json
 
 from companion.policy import load_policy
-from sitl.train import Trainer, parse_args
+from sitl.learn.cli import parse_args
+from sitl.learn.trainer import make_trainer
 
 
 def test_one_uav_learns_to_reach_its_goal(tmp_path):
@@ -26,7 +27,7 @@ def test_one_uav_learns_to_reach_its_goal(tmp_path):
         "--eval-every-updates", "0", "--final-eval-episodes", "50", "--seed", "1",
         "--run-dir", str(tmp_path),
     ])
-    trainer = Trainer(cfg, agent_cfg, tmp_path)
+    trainer = make_trainer(cfg, agent_cfg, tmp_path)
     before = trainer.evaluate(50)["circle"]["success_rate"]
     policy_path = trainer.run()
     after = json.loads((tmp_path / "final_eval.json").read_text())["evaluation"]["success_rate"]

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from sitl.realtime.mavlink_swarm import _records_from_trace
-from sitl.scenarios import ScenarioSample
+from sitl.sim.scenarios import ScenarioSample
 from tests.companion_helpers import REPO, env, free_udp_blocks, udp_port_free
 
 pytestmark = pytest.mark.timeout(240)

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from pettingzoo.test import parallel_api_test
 
-from sitl.config import ScenarioConfig, SimConfig
-from sitl.pettingzoo_env import SwarmParallelEnv
+from sitl.sim.config import ScenarioConfig, SimConfig
+from sitl.sim.pettingzoo_env import SwarmParallelEnv
 
 
 def test_parallel_api_random_scenario():

@@ -10,8 +10,8 @@ import torch
 
 from companion.policy import FORMAT_VERSION, PolicyFileError, build_metadata, load_policy, save_policy
 from companion.spec import DEFAULT_ACTION_SPEC, CameraSpec
-from sitl.rl.agent import AgentConfig, SacAeAgent
-from sitl.rl.export import export_policy
+from sitl.learn.agent import AgentConfig, SacAeAgent
+from sitl.learn.export import export_policy
 
 CAMERA = CameraSpec(width=16, height=16)
 

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from sitl.rescore import selection_score
-from sitl.train import select_snapshot
+from sitl.learn.rescore import selection_score
+from sitl.learn.trainer import select_snapshot
 
 REPO = Path(__file__).resolve().parent.parent
 

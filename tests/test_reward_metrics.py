@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from sitl.config import RewardConfig, ScenarioConfig, SimConfig
-from sitl.env import SwarmEnv
-from sitl.metrics import UAVRecord, spl, summarize
-from sitl.reward import avoid_reward, goal_reward, nearest_depth_m, step_reward
+from sitl.sim.config import RewardConfig, ScenarioConfig, SimConfig
+from sitl.sim.env import SwarmEnv
+from sitl.sim.metrics import UAVRecord, spl, summarize
+from sitl.sim.reward import avoid_reward, goal_reward, nearest_depth_m, step_reward
 
 CFG = RewardConfig()
 
@@ -76,7 +76,7 @@ def test_arrived_uav_hovers_near_goal_and_stays_visible():
     cfg = SimConfig(num_uavs=1, scenario=ScenarioConfig(name="circle", circle_radius_m=3.0, circle_jitter_m=0.0))
     env = SwarmEnv(cfg, seed=0)
     obs = env.reset()
-    from sitl.baselines import straight_to_goal
+    from sitl.eval.baselines import straight_to_goal
     total = 0.0
     while not env.world_done.all():
         obs, r, term, trunc, info = env.step(straight_to_goal(obs.state))

@@ -8,10 +8,10 @@ from itertools import combinations
 import numpy as np
 import pytest
 
-from sitl.baselines import straight_to_goal
-from sitl.config import DENSITIES, ScenarioConfig, SimConfig, density_from_name
-from sitl.env import SwarmEnv
-from sitl.scenarios import random_box_size, sample_circle, sample_random
+from sitl.eval.baselines import straight_to_goal
+from sitl.sim.config import DENSITIES, ScenarioConfig, SimConfig, density_from_name
+from sitl.sim.env import SwarmEnv
+from sitl.sim.scenarios import random_box_size, sample_circle, sample_random
 
 
 @pytest.mark.parametrize("name", ["small", "medium", "large"])
@@ -124,7 +124,7 @@ def test_bad_actions_raise_or_clip():
 
 
 def test_mixed_scenario_draws_circles_with_the_given_fraction():
-    from sitl.scenarios import sample_scenario
+    from sitl.sim.scenarios import sample_scenario
 
     rng = np.random.default_rng(3)
     cfg = ScenarioConfig(name="mixed", circle_fraction=0.5)

@@ -18,12 +18,16 @@ import pytest
 import torch
 
 from companion.spec import DEFAULT_ACTION_SPEC, CameraSpec
-from sitl import swarm_test
-from sitl.config import ScenarioConfig
-from sitl.metrics import UAVRecord, summarize
-from sitl.orca import OrcaParams, velocity_to_action
-from sitl.swarm_test import (EvalSettings, collision_rate, evaluate_method, main, markdown_table, paper_cells,
-                             resolve_method, run_paper)
+from sitl.eval import cli as swarm_test
+from sitl.sim.config import ScenarioConfig
+from sitl.sim.metrics import UAVRecord, summarize
+from sitl.eval.orca import OrcaParams, velocity_to_action
+from sitl.eval.cli import main
+from sitl.eval.evaluate import EvalSettings, evaluate_method
+from sitl.eval.methods import resolve_method
+from sitl.eval.paper import paper_cells, run_cell, run_paper
+from sitl.eval.report import collision_rate, markdown_table
+from sitl.sim.scenarios import EVAL_SEED_OFFSET
 
 
 # The RVO2-3D binding has wheels for Linux x86_64 only (a pyproject dependency there); elsewhere
@@ -37,8 +41,8 @@ needs_rvo = pytest.mark.skipif(
 @pytest.fixture(scope="module")
 def contract_policy(tmp_path_factory) -> Path:
     """A small untrained policy that follows the policy-file contract (16x16 depth)."""
-    from sitl.rl.agent import AgentConfig, SacAeAgent
-    from sitl.rl.export import export_policy
+    from sitl.learn.agent import AgentConfig, SacAeAgent
+    from sitl.learn.export import export_policy
 
     torch.manual_seed(0)
     torch.set_num_threads(1)
@@ -48,10 +52,7 @@ def contract_policy(tmp_path_factory) -> Path:
     return path
 
 
-def test_eval_seeds_are_the_trainers_evaluation_seeds():
-    from sitl.train import EVAL_SEED_OFFSET
-
-    assert swarm_test.EVAL_SEED_OFFSET == EVAL_SEED_OFFSET
+def test_eval_seeds_are_the_test_seeds():
     assert EvalSettings(seed=3).env_seed == EVAL_SEED_OFFSET + 3
 
 
@@ -168,7 +169,7 @@ def test_command_writes_figures_and_json(tmp_path):
     data = json.loads((out / "metrics.json").read_text())
     assert data == json.loads(extra.read_text())
     assert data["method"]["label"] == "straight" and data["references"] == {}  # straight is its own reference
-    assert data["settings"]["eval_seed"] == swarm_test.EVAL_SEED_OFFSET
+    assert data["settings"]["eval_seed"] == EVAL_SEED_OFFSET
     assert set(data["summary"]) >= {"success_rate", "spl", "extra_distance_m", "average_speed_m_s",
                                     "collision_uav_rate", "collision_ground_rate", "timeout_rate"}
     assert data["collision_rate"] == pytest.approx(1 - data["summary"]["success_rate"])
@@ -264,7 +265,7 @@ def test_paper_run_is_resumable_and_reports_untrained_methods(tmp_path, contract
     # Other settings are a different cell: it is computed again, not reused.
     changed = [c for c in fig6 if c.name == "fig6-n4-orca"][0]
     changed.settings = EvalSettings(**{**changed.settings.__dict__, "seed": 1})
-    assert swarm_test.run_cell(changed, out, progress=False)[1] == "computed"
+    assert run_cell(changed, out, progress=False)[1] == "computed"
     assert not math.isnan(json.loads((out / "cells" / "fig6-n4-orca.json").read_text())["summary"]["spl"])
 
 

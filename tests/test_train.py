@@ -15,10 +15,11 @@ import pytest
 import torch
 
 from companion.spec import DEFAULT_ACTION_SPEC, CameraSpec
-from sitl.rl.agent import AgentConfig, SacAeAgent
-from sitl.rl.buffer import FrameReplayBuffer
-from sitl.rl.vae import train_vae
-from sitl.train import parse_args, snapshot_counters
+from sitl.learn.agent import AgentConfig, SacAeAgent
+from sitl.learn.buffer import FrameReplayBuffer
+from sitl.learn.vae import train_vae
+from sitl.learn.cli import parse_args
+from sitl.learn.trainer import snapshot_counters
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -287,3 +288,27 @@ def test_snapshot_counters_of_older_validation_rows_are_scaled_from_the_run(tmp_
     assert new["transitions"] == 250_000 + 99_000 and new["episodes"] == 870 + 150 and new["updates"] == 16_000
     with pytest.raises(ValueError, match="not a snapshot of a run directory"):
         snapshot_counters(run_dir / "snapshots" / "agent_3000.pt")
+
+
+@pytest.mark.parametrize("preset", ["fast", "paper"])
+def test_help_shows_the_defaults_a_run_uses(preset, capsys):
+    """--help's '(default: X)' of every flag is the value of the resolved config (the preset applied)."""
+    import dataclasses
+
+    from sitl.learn.cli import build_parser, parse_args as parse
+
+    argv = [] if preset == "fast" else ["--preset", preset]
+    with pytest.raises(SystemExit):
+        parse([*argv, "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    cfg, agent_cfg, _ = parse(argv)
+    values = {**dataclasses.asdict(agent_cfg), **dataclasses.asdict(cfg)}
+    checked = 0
+    for action in build_parser(preset)._actions:  # the parser parse() builds for these arguments
+        if action.dest in values:
+            shown = " ".join(action.help.split())
+            assert shown.endswith(f"(default: {values[action.dest]})"), (action.dest, shown)
+            assert shown in text  # and --help printed it
+            checked += 1
+    assert checked == len(values)
+    assert f"(default: {agent_cfg.init_temperature})" in text and f"(default: {agent_cfg.n_step})" in text

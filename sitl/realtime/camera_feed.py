@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.spec import DEFAULT_CAMERA_SPEC, CameraSpec
-from sitl.camera import LANDED_CAMERA_HEIGHT_M, DepthCamera
+from sitl.sim.camera import LANDED_CAMERA_HEIGHT_M, DepthCamera
 from sitl.cli_args import (
     MAX_CAMERA_HZ,
     MAX_SUPERSAMPLE,

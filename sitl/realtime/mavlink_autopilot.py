@@ -470,7 +470,7 @@ class SimAutopilot:
 
     def crash(self, reason: str, outcome: str) -> None:
         """The vehicle is lost: disarmed for good. ``outcome`` is the evaluation's code for it
-        (``collision_uav`` or ``collision_ground``, as :mod:`sitl.env`), ``reason`` the words."""
+        (``collision_uav`` or ``collision_ground``, as :mod:`sitl.sim.env`), ``reason`` the words."""
         if not self.crashed:
             self.crashed = True
             self.set_armed(False, f"crash: {reason}")

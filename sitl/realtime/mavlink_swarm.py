@@ -43,11 +43,11 @@ from pathlib import Path
 import numpy as np
 
 from companion.spec import DEFAULT_CAMERA_SPEC, DEFAULT_TASK_SPEC
-from sitl.metrics import OUTCOMES, UAVRecord
+from sitl.sim.metrics import OUTCOMES, UAVRecord
 from sitl.realtime.camera_feed import DEFAULT_CAMERA_HZ
 from sitl.realtime.depth_transport import DEPTH_BASE_PORT
 from sitl.realtime.udp_endpoint import GCS_PORT, PX4_ONBOARD_BASE_PORT, MavlinkUdpEndpoint, mavlink
-from sitl.scenarios import ScenarioSample
+from sitl.sim.scenarios import ScenarioSample
 
 COLLISION_RADIUS_M = DEFAULT_TASK_SPEC.collision_radius_m  # R, as sitl.vehicle and the in-process simulator use
 ARRIVAL_RADIUS_M = DEFAULT_TASK_SPEC.arrival_radius_m

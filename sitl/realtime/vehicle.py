@@ -46,9 +46,9 @@ from sitl.cli_args import (
     udp_port,
     udp_port_nonzero,
 )
-from sitl.collision import uav_uav_collisions
-from sitl.dynamics import DYNAMICS_NAMES, make_dynamics
-from sitl.env import _OUTCOME_NAMES, COLLISION_GROUND, COLLISION_UAV
+from sitl.sim.collision import uav_uav_collisions
+from sitl.sim.dynamics import DYNAMICS_NAMES, make_dynamics
+from sitl.sim.env import _OUTCOME_NAMES, COLLISION_GROUND, COLLISION_UAV
 from sitl.realtime.camera_feed import CameraConfig, CameraFeed, add_camera_arguments, camera_config, check_camera_arguments
 from sitl.realtime.event_log import EventLog
 from sitl.realtime.loop import serve

@@ -1,4 +1,4 @@
-"""Dynamics backends behind one interface (:class:`sitl.dynamics.base.Dynamics`).
+"""Dynamics backends behind one interface (:class:`sitl.sim.dynamics.base.Dynamics`).
 
 ``kinematic`` (default) is a fast first-order velocity-tracking model; ``jsbsim`` flies
 one JSBSim rigid-body quadrotor per UAV under a velocity controller.
@@ -6,8 +6,8 @@ one JSBSim rigid-body quadrotor per UAV under a velocity controller.
 
 from __future__ import annotations
 
-from sitl.dynamics.base import Dynamics
-from sitl.dynamics.kinematic import KinematicDynamics, KinematicParams
+from sitl.sim.dynamics.base import Dynamics
+from sitl.sim.dynamics.kinematic import KinematicDynamics, KinematicParams
 
 DYNAMICS_NAMES = ("kinematic", "jsbsim")
 
@@ -17,7 +17,7 @@ def make_dynamics(name: str, num_uavs: int) -> Dynamics:
     if name == "kinematic":
         return KinematicDynamics(num_uavs)
     if name == "jsbsim":
-        from sitl.dynamics.jsbsim_quad import JSBSimDynamics  # jsbsim loads slowly; only when asked
+        from sitl.sim.dynamics.jsbsim_quad import JSBSimDynamics  # jsbsim loads slowly; only when asked
 
         return JSBSimDynamics(num_uavs)
     raise ValueError(f"unknown dynamics {name!r}; choose one of {', '.join(DYNAMICS_NAMES)}")

@@ -12,7 +12,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from sitl.rl.networks import Decoder, DepthNormalizer, Encoder, weight_init
+from sitl.learn.networks import Decoder, DepthNormalizer, Encoder, weight_init
 
 
 class VAEEncoder(Encoder):

@@ -7,7 +7,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sitl.config import ScenarioConfig
+from companion.frames import wrap_angle_rad
+from sitl.sim.config import ScenarioConfig
+
+#: Test seeds (the final evaluation of a training run, ``swarm_test``) are ``EVAL_SEED_OFFSET + seed``;
+#: training seeds stay below it.
+EVAL_SEED_OFFSET = 1_000_000
+#: Validation seeds (periodic evaluations during training, snapshot selection, ``sitl.rescore``):
+#: disjoint from both, so choosing a snapshot never looks at the test episodes.
+VALIDATION_SEED_OFFSET = 500_000
 
 
 @dataclass
@@ -65,7 +73,7 @@ def sample_random(num_uavs: int, config: ScenarioConfig, rng: np.random.Generato
     goal = _spread_points(num_uavs, low, high, config.min_separation_m, rng,
                           avoid=start, avoid_min=config.min_goal_distance_m)
     yaw = _bearing_rad(start, goal) + rng.uniform(-config.yaw_jitter_rad, config.yaw_jitter_rad, num_uavs)
-    return ScenarioSample(start, goal, (yaw + math.pi) % (2 * math.pi) - math.pi)
+    return ScenarioSample(start, goal, wrap_angle_rad(yaw))
 
 
 def sample_circle(num_uavs: int, config: ScenarioConfig, rng: np.random.Generator) -> ScenarioSample:

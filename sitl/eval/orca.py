@@ -90,7 +90,7 @@ def velocity_to_action(vel_ned: np.ndarray, yaw_rad: np.ndarray, params: OrcaPar
 
 
 class OrcaController:
-    """ORCA for every UAV of a :class:`sitl.env.SwarmEnv` (one RVO2-3D simulator per world).
+    """ORCA for every UAV of a :class:`sitl.sim.env.SwarmEnv` (one RVO2-3D simulator per world).
 
     Call it with the env after each reset or step; it reads the true state of the worlds
     (privileged sensing) and returns actions [M, 3]. UAVs that no longer act but are still
@@ -153,3 +153,9 @@ class OrcaController:
         d = env.dynamics
         vel = self.new_velocities(d.pos_ned, d.vel_ned, env.goal_ned, env.acting, env.present)
         return velocity_to_action(vel, d.yaw_rad, self.params, self.spec)
+
+
+def orca_actor(env, params: OrcaParams = OrcaParams()):
+    """Privileged ORCA as an :data:`sitl.sim.episodes.Actor` for ``env`` (an ``ActorFactory``): it reads the true states."""
+    controller = OrcaController.for_env(env, params)
+    return lambda obs: controller.act_env(env)

@@ -11,7 +11,7 @@ Per step and per UAV (paper III.B):
   :mod:`companion.observation`, the code the onboard companion runs;
 * action: float32 [M, 3] ``(vel_fwd_m_s, vel_down_m_s, yaw_rate_rad_s)``; non-finite
   actions raise, out-of-bounds ones are clipped to the bounds;
-* reward: eqs. 2-4 (:mod:`sitl.reward`).
+* reward: eqs. 2-4 (:mod:`sitl.sim.reward`).
 
 A UAV's episode ends on arrival (terminated), on a collision with another UAV within 2R
 or with the ground (terminated), or when its world reaches ``max_episode_steps``
@@ -29,13 +29,13 @@ import numpy as np
 
 from companion.observation import DepthFrameStack, build_state
 from companion.spec import DEFAULT_ACTION_SPEC, ActionSpec
-from sitl.camera import DepthCamera
-from sitl.collision import ground_collisions, uav_uav_collisions
-from sitl.config import SimConfig
-from sitl.dynamics import make_dynamics
-from sitl.metrics import UAVRecord
-from sitl.reward import nearest_depth_m, step_reward
-from sitl.scenarios import sample_scenario
+from sitl.sim.camera import DepthCamera
+from sitl.sim.collision import ground_collisions, uav_uav_collisions
+from sitl.sim.config import SimConfig
+from sitl.sim.dynamics import make_dynamics
+from sitl.sim.metrics import UAVRecord
+from sitl.sim.reward import nearest_depth_m, step_reward
+from sitl.sim.scenarios import sample_scenario
 
 # Outcome codes kept per UAV while an episode runs.
 RUNNING, ARRIVED, COLLISION_UAV, COLLISION_GROUND, TIMEOUT = range(5)
@@ -56,7 +56,7 @@ class SwarmEnv:
     Args:
         config: the worlds' configuration.
         seed: seed of the environment's random generator (scenarios and camera noise).
-        boxes, cylinders: optional static obstacles per world (see :mod:`sitl.camera`);
+        boxes, cylinders: optional static obstacles per world (see :mod:`sitl.sim.camera`);
             they are rendered but, like the paper's scenes, the scenarios do not place any.
     """
 

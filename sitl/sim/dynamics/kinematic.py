@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from sitl.dynamics.base import Dynamics
+from sitl.sim.dynamics.base import Dynamics
 
 
 @dataclass(frozen=True)

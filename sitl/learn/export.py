@@ -10,7 +10,7 @@ import torch
 from torch import nn
 
 from companion.policy import build_metadata, save_policy
-from sitl.rl.agent import SacAeAgent
+from sitl.learn.agent import SacAeAgent
 
 
 class ExportedPolicy(nn.Module):

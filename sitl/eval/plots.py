@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sitl.metrics import UAVRecord
+from sitl.sim.metrics import UAVRecord
 
 
 def _pyplot():
@@ -95,7 +95,7 @@ def plot_trajectories(records: list[UAVRecord], path: str | Path, title: str, ep
 def plot_scaling(results: dict[str, dict[int, dict]], path: str | Path, title: str) -> Path:
     """Paper Fig. 6: success rate and SPL against the number of UAVs, one line per method.
 
-    ``results[method][n]`` is a :func:`sitl.metrics.summarize` dict; missing cells are gaps.
+    ``results[method][n]`` is a :func:`sitl.sim.metrics.summarize` dict; missing cells are gaps.
     """
     plt = _pyplot()
     path = Path(path)

@@ -4,14 +4,17 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
-from companion.spec import CameraSpec
-from sitl.camera import SceneGeometry, StereoNoise
+from companion.spec import DEFAULT_TASK_SPEC, CameraSpec
+from sitl.sim.camera import SceneGeometry, StereoNoise
+from sitl.sim.dynamics import DYNAMICS_NAMES
 
 #: UAVs per cubic metre of the random scenarios' box (paper IV.B).
 DENSITIES: dict[str, float] = {"small": 0.1, "medium": 0.06, "large": 0.04}
 SCENARIOS = ("random", "circle")
 #: Training may also draw each world's episode from either scenario ("mixed").
 TRAINING_SCENARIOS = SCENARIOS + ("mixed",)
+#: The circle scenario's radius in m (paper IV.C: 8-32 UAVs on a circle, goals antipodal).
+CIRCLE_RADIUS_M = 12.0
 ARRIVED_BEHAVIOURS = ("hover", "remove")
 CRASHED_BEHAVIOURS = ("remove", "freeze")
 
@@ -25,7 +28,7 @@ class RewardConfig:
     w_goal: float = 3.0
     w_avoid: float = -0.05
     d_safe_m: float = 5.0
-    arrival_radius_m: float = 0.5
+    arrival_radius_m: float = DEFAULT_TASK_SPEC.arrival_radius_m
 
 
 @dataclass(frozen=True)
@@ -56,7 +59,7 @@ class ScenarioConfig:
     min_separation_m: float = 1.0
     min_goal_distance_m: float = 2.0
     yaw_jitter_rad: float = 0.785398  # pi / 4
-    circle_radius_m: float = 12.0
+    circle_radius_m: float = CIRCLE_RADIUS_M
     circle_alt_m: float = 10.0
     circle_jitter_m: float = 0.25
     circle_fraction: float = 0.5
@@ -95,12 +98,12 @@ class SimConfig:
     scenario: ScenarioConfig = field(default_factory=ScenarioConfig)
     dynamics: str = "kinematic"
     control_period_s: float = 0.1  # one policy step; dynamics sub-step below it
-    max_episode_steps: int = 400  # 40 s at 10 Hz: > 3x the longest circle flight at full speed
+    max_episode_steps: int = DEFAULT_TASK_SPEC.max_episode_steps  # 40 s at 10 Hz: > 3x the longest circle flight at full speed
     camera: CameraSpec = field(default_factory=CameraSpec)
     camera_supersample: int = 4  # sub-rays per pixel side, min-pooled (render high, pool down)
     camera_noise: StereoNoise | None = None  # None: perfect depth
     body: SceneGeometry = field(default_factory=SceneGeometry)
-    collision_radius_m: float = 0.3  # R: two UAVs collide when their centres are within 2R
+    collision_radius_m: float = DEFAULT_TASK_SPEC.collision_radius_m  # R: two UAVs collide when their centres are within 2R
     reward: RewardConfig = field(default_factory=RewardConfig)
     arrived: str = "hover"  # "hover": stop at the goal and stay visible; "remove": vanish
     crashed: str = "remove"  # "remove": vanish; "freeze": stay where it crashed, visible
@@ -121,8 +124,8 @@ class SimConfig:
             raise ValueError(f"arrived must be one of {ARRIVED_BEHAVIOURS}, got {self.arrived!r}")
         if self.crashed not in CRASHED_BEHAVIOURS:
             raise ValueError(f"crashed must be one of {CRASHED_BEHAVIOURS}, got {self.crashed!r}")
-        if self.dynamics not in ("kinematic", "jsbsim"):
-            raise ValueError(f"unknown dynamics {self.dynamics!r}; choose kinematic or jsbsim")
+        if self.dynamics not in DYNAMICS_NAMES:
+            raise ValueError(f"unknown dynamics {self.dynamics!r}; choose {' or '.join(DYNAMICS_NAMES)}")
 
     def to_dict(self) -> dict:
         return asdict(self)

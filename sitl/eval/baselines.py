@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from typing import TYPE_CHECKING
+
 from companion.spec import DEFAULT_ACTION_SPEC, ActionSpec
+
+if TYPE_CHECKING:  # the simulator is needed only to bind an actor to an environment
+    from sitl.sim.env import SwarmEnv
+    from sitl.sim.episodes import Actor
 
 
 def straight_to_goal(state: np.ndarray, spec: ActionSpec = DEFAULT_ACTION_SPEC) -> np.ndarray:
@@ -22,3 +28,8 @@ def straight_to_goal(state: np.ndarray, spec: ActionSpec = DEFAULT_ACTION_SPEC) 
     action[:, 1] = goal_down  # proportional in z, saturated by the clip below
     action[:, 2] = 2.0 * bearing
     return np.clip(action, spec.low_array(), spec.high_array())
+
+
+def straight_actor(env: "SwarmEnv") -> "Actor":
+    """The straight-to-goal reference as an :data:`sitl.sim.episodes.Actor` for ``env`` (an ``ActorFactory``)."""
+    return lambda obs: straight_to_goal(obs.state, env.action_spec)

@@ -9,7 +9,7 @@ Methods (``AgentConfig.method``):
 * ``drq`` — the encoder learns from the critic on randomly shifted images (Kostrikov et al.
   2020): cheaper per update than the decoder, and reported as more sample-efficient.
 * ``vae`` — RL+VAE: the encoder is a VAE trained beforehand on depth images and frozen; SAC
-  learns on its latent (see :mod:`sitl.rl.vae`).
+  learns on its latent (see :mod:`sitl.learn.vae`).
 
 The update follows the equations: :meth:`SacAeAgent.update_critic` (eqs. 5-6),
 :meth:`SacAeAgent.update_actor_and_alpha` (eq. 7), :meth:`SacAeAgent.update_decoder` (eq. 8).
@@ -27,7 +27,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from companion.spec import ActionSpec, CameraSpec
-from sitl.rl.networks import STATE_FEATURES, Actor, Critic, Decoder, DepthNormalizer, Encoder, StateFeatures, weight_init
+from sitl.learn.networks import STATE_FEATURES, Actor, Critic, Decoder, DepthNormalizer, Encoder, StateFeatures, weight_init
 
 METHODS = ("sac_ae", "cnn", "drq", "vae")
 

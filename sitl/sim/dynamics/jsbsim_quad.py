@@ -74,7 +74,7 @@ import numba
 import numpy as np
 
 from companion.frames import geodetic_to_ned, ned_to_geodetic, wrap_angle_rad
-from sitl.dynamics.base import Dynamics
+from sitl.sim.dynamics.base import Dynamics
 
 FT_TO_M = 0.3048
 LBF_TO_N = 4.4482216152605

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sitl.config import RewardConfig
+from sitl.sim.config import RewardConfig
 
 
 def nearest_depth_m(depth_m: np.ndarray) -> np.ndarray:

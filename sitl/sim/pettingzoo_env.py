@@ -1,4 +1,4 @@
-"""PettingZoo ``ParallelEnv`` view of one swarm world, built on :class:`sitl.env.SwarmEnv`.
+"""PettingZoo ``ParallelEnv`` view of one swarm world, built on :class:`sitl.sim.env.SwarmEnv`.
 
 Agents are named ``uav_0`` .. ``uav_{N-1}``. Each observation is a dict with ``depth``
 (float32 [3, H, W], metres) and ``state`` (float32 [6]); each action a float32 [3]
@@ -16,8 +16,8 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from companion.spec import STATE_DIM
-from sitl.config import SimConfig
-from sitl.env import _OUTCOME_NAMES, SwarmEnv
+from sitl.sim.config import SimConfig
+from sitl.sim.env import _OUTCOME_NAMES, SwarmEnv
 
 
 class SwarmParallelEnv(ParallelEnv):

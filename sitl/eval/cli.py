@@ -1,0 +1,363 @@
+"""``python -m sitl.swarm_test``: evaluate a policy in the paper's scenarios (paper IV.B-C).
+
+Flies a policy file (default ``models/policy.pt``) or a reference controller in the circle
+or random scenario for many episodes at once, prints the paper's metrics beside the
+no-avoidance reference, and writes trajectory figures and a JSON of every metric and
+per-UAV record into an output folder::
+
+    python -m sitl.swarm_test --n 8                         # models/policy.pt, circle r = 12 m
+    python -m sitl.swarm_test --policy orca --scenario random --density large
+    python -m sitl.swarm_test --policy runs/x/policy.pt --episodes 200 --camera-noise
+    python -m sitl.swarm_test --n 8 --mavlink               # N real companion processes over MAVLink
+
+Controllers (``--policy``): a policy file (TorchScript, see docs/policy_file.md; it sees
+only its depth camera, goal and own velocity), ``straight`` (flies straight at its goal:
+what a scenario gives for free) or ``orca`` (ORCA in 3D with perfect knowledge of every
+UAV: the privileged classical reference, :mod:`sitl.eval.orca`).
+
+``--mavlink`` flies the same episodes with the whole product instead: the SITL vehicles
+(``sitl.vehicle``) and one real ``companion`` process per UAV, in real time over MAVLink
+(:mod:`sitl.realtime.mavlink_swarm`), and reports it beside the in-process evaluation of the same
+episodes.
+
+``python -m sitl.swarm_test paper`` reproduces the paper's Table II and Fig. 6 (resumable;
+``paper --help``). Evaluation seeds are ``EVAL_SEED_OFFSET + --seed``, disjoint from
+training seeds; episodes run as parallel worlds and the policy is evaluated in one batch
+over every acting UAV of every world.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import signal
+import sys
+from pathlib import Path
+
+from companion.spec import DEFAULT_TASK_SPEC
+from sitl.cli_args import (
+    ArgumentParser,
+    MAX_THREADS,
+    MAX_VEHICLES,
+    float_range,
+    int_range,
+    output_dir,
+    output_file_in_new_dir,
+)
+from sitl.eval.over_mavlink import evaluate_beside_in_process
+from sitl.eval.evaluate import EvalResult, EvalSettings, density_label, evaluate_method
+from sitl.eval.methods import BASELINES, DEFAULT_POLICY, EvaluationError, resolve_method
+from sitl.eval.paper import DEFAULT_FIG6_NS, PAPER_METHODS, paper_cells, parse_policies, run_paper
+from sitl.eval.report import _write_json, markdown_table
+from sitl.sim.config import CIRCLE_RADIUS_M, DENSITIES, SCENARIOS, ScenarioConfig, density_from_name
+from sitl.sim.dynamics import DYNAMICS_NAMES
+from sitl.sim.scenarios import EVAL_SEED_OFFSET
+
+#: Bounds of the evaluation's sizes: beyond them a run would only exhaust memory or never end.
+MAX_EPISODES = 1_000_000
+
+
+MAX_EPISODE_STEPS = 100_000
+
+
+MAX_BATCH = 10_000
+
+
+MAX_RADIUS_M = 10_000.0
+
+
+def _add_common(parser: argparse.ArgumentParser) -> None:
+    """Options shared by the single evaluation and ``paper``."""
+    parser.add_argument("--episodes", type=int_range(1, MAX_EPISODES), default=None,
+                        help="episodes per evaluation (default 100; 10 with --mavlink, which flies in real time)")
+    parser.add_argument("--seed", type=int_range(0), default=0,
+                        help=f"evaluation seed; the simulator uses {EVAL_SEED_OFFSET} + SEED, disjoint from training")
+    parser.add_argument("--dynamics", choices=DYNAMICS_NAMES, default=DYNAMICS_NAMES[0],
+                        help="UAV dynamics (default kinematic)")
+    parser.add_argument("--camera-noise", action=argparse.BooleanOptionalAction, default=False,
+                        help="stereo depth noise and dropouts (default off: perfect depth)")
+    parser.add_argument("--max-steps", type=int_range(1, MAX_EPISODE_STEPS), default=DEFAULT_TASK_SPEC.max_episode_steps,
+                        help=f"episode time limit in control steps (default {DEFAULT_TASK_SPEC.max_episode_steps} = "
+                             f"{DEFAULT_TASK_SPEC.max_episode_steps / 10:g} s at 10 Hz)")
+    parser.add_argument("--batch", type=int_range(1, MAX_BATCH), default=100,
+                        help="episodes flown at once as parallel worlds (default 100)")
+    parser.add_argument("--threads", type=int_range(1, MAX_THREADS), default=2, help="torch threads for the policy (default 2)")
+    parser.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = ArgumentParser(prog="python -m sitl.swarm_test", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--policy", default=str(DEFAULT_POLICY),
+                        help=f"policy file, or a reference: {', '.join(BASELINES)} (default {DEFAULT_POLICY})")
+    parser.add_argument("--n", type=int_range(1, MAX_VEHICLES), default=8, help="UAVs per world (default 8)")
+    parser.add_argument("--scenario", choices=SCENARIOS, default="circle", help="scenario (default circle)")
+    parser.add_argument("--density", type=_density, default="medium",
+                        help=f"random scenario density: {', '.join(DENSITIES)} or UAV/m^3 (default medium)")
+    parser.add_argument("--radius", type=float_range(0.0, MAX_RADIUS_M, low_open=True), default=CIRCLE_RADIUS_M,
+                        help=f"circle radius in m (default {CIRCLE_RADIUS_M:g})")
+    _add_common(parser)
+    parser.add_argument("--out", type=output_dir, default=None,
+                        help="output folder (default runs/swarm_test/<method>-<scenario>-n<N>)")
+    parser.add_argument("--json", type=output_file_in_new_dir, default=None, help="also write the metrics JSON to this file")
+    parser.add_argument("--no-reference", dest="reference", action="store_false",
+                        help="do not fly the straight-to-goal reference beside the controller")
+    parser.add_argument("--plot-episodes", type=int_range(0), default=1,
+                        help="episodes to draw as trajectory figures (default 1; 0: none)")
+    mav = parser.add_argument_group("the whole stack over MAVLink (--mavlink)")
+    mav.add_argument("--mavlink", action="store_true",
+                     help="fly the episodes with sitl.vehicle and N real companion processes in real time")
+    mav.add_argument("--start", choices=("ground", "airborne"), default=None,
+                     help="ground: each companion arms and takes off (--arm --takeoff); airborne: the vehicles "
+                          "start hovering at the episode's start (default ground for circle, airborne for random)")
+    mav.add_argument("--base-port", type=_port, default=14540, help="companion i <-> vehicle i on UDP base-port + i")
+    mav.add_argument("--depth-port", type=_port, default=14640, help="vehicle i's depth frames to UDP depth-port + i")
+    mav.add_argument("--gcs-port", type=_port, default=14550, help="ground-station port of every vehicle (this process)")
+    args = parser.parse_args(argv)
+    if args.episodes is None:
+        args.episodes = 10 if args.mavlink else 100
+    if args.mavlink:
+        if args.policy in BASELINES:
+            parser.error(f"--mavlink flies a policy file in the companion; {args.policy!r} is an in-process reference")
+        if args.camera_noise:
+            parser.error("--mavlink: sitl.vehicle renders perfect depth; --camera-noise is in-process only")
+        if args.start is None:
+            args.start = "ground" if args.scenario == "circle" else "airborne"
+        if args.start == "ground" and args.scenario == "random":
+            parser.error("--start ground needs the circle scenario: random starts can be stacked vertically within "
+                         "2R, so climbing from the ground below them would collide; use --start airborne")
+        ports = {"--base-port": args.base_port, "--depth-port": args.depth_port}
+        for name, first in ports.items():
+            if first + args.n > 65536:
+                parser.error(f"{name} {first} + {args.n} vehicles runs past port 65535")
+        blocks = [(args.base_port, args.base_port + args.n), (args.depth_port, args.depth_port + args.n),
+                  (args.gcs_port, args.gcs_port + 1)]
+        for a, (lo, hi) in enumerate(blocks):
+            for lo2, hi2 in blocks[a + 1:]:
+                if lo < hi2 and lo2 < hi:
+                    free = max(hi for _, hi in blocks)
+                    parser.error(f"port ranges overlap: base {args.base_port}..{args.base_port + args.n - 1}, depth "
+                                 f"{args.depth_port}..{args.depth_port + args.n - 1}, gcs {args.gcs_port} (with more "
+                                 f"than 10 UAVs the default GCS port 14550 is inside the base range: e.g. "
+                                 f"--gcs-port {free})")
+        args.batch = max(args.batch, args.episodes)  # the in-process run then meets exactly the same episodes
+    try:
+        density = density_from_name(args.density)
+        args.scenario_config = ScenarioConfig(name=args.scenario, density=density, circle_radius_m=args.radius)
+    except ValueError as err:
+        parser.error(str(err))
+    args.parser = parser
+    return args
+
+
+def _density(text: str) -> str:
+    """A density name or a finite number of UAV/m^3 > 0 (kept as text: reports name it as given)."""
+    try:
+        value = density_from_name(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"density must be a finite number of UAV/m^3, got {text!r}")
+    return text
+
+
+def _port(text: str) -> int:
+    if not text.isdigit() or not 1024 <= int(text) <= 65535:
+        raise argparse.ArgumentTypeError(f"port must be a number in 1024..65535, got {text!r}")
+    return int(text)
+
+
+def _scenario_tag(scenario: ScenarioConfig) -> str:
+    if scenario.name == "circle":
+        return f"circle-r{scenario.circle_radius_m:g}"
+    return f"random-{density_label(scenario.density).replace('/', '')}"
+
+
+def run_single(args: argparse.Namespace) -> int:
+    """The default command: one controller (+ the straight reference) in one scenario."""
+    try:
+        method = resolve_method(args.policy)
+    except EvaluationError as err:
+        args.parser.error(str(err))
+    if method.kind == "policy":
+        import torch
+
+        torch.set_num_threads(args.threads)
+    settings = EvalSettings(scenario=args.scenario_config, num_uavs=args.n, episodes=args.episodes, seed=args.seed,
+                            dynamics=args.dynamics, camera_noise=args.camera_noise, max_episode_steps=args.max_steps,
+                            batch_worlds=args.batch)
+    methods = [method]
+    if args.reference and not (method.kind == "baseline" and method.label == "straight"):
+        methods.append(resolve_method("straight"))
+    results: list[EvalResult] = []
+    try:
+        for m in methods:
+            results.append(evaluate_method(m, settings, progress=args.progress))
+    except EvaluationError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+
+    default_name = f"{method.label}-{_scenario_tag(settings.scenario)}-n{settings.num_uavs}"
+    out = args.out or Path("runs/swarm_test") / (default_name + ("-mavlink" if args.mavlink else ""))
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        print(f"error: cannot create the output folder {out}: {err.strerror}", file=sys.stderr)
+        return 2
+    mavlink_info = None
+    if args.mavlink:
+        try:
+            mav_result, mavlink_info = evaluate_beside_in_process(
+                method, settings, results[0], out, args.start, args.base_port, args.depth_port, args.gcs_port,
+                args.progress)
+        except Exception as err:  # noqa: BLE001 - reported with its reason; every process is already stopped
+            from sitl.realtime.mavlink_swarm import MavlinkSwarmError
+
+            if not isinstance(err, (MavlinkSwarmError, OSError, ValueError)):
+                raise
+            print(f"error: MAVLink evaluation stopped: {err}", file=sys.stderr)
+            return 1
+        results.insert(0, mav_result)
+    main_result = results[0]
+    figures = []
+    if args.plot_episodes:
+        from sitl.eval.plots import plot_trajectories
+
+        episodes = sorted({r.episode for r in main_result.records})[: args.plot_episodes]
+        for k, episode in enumerate(episodes):
+            name = "trajectories.png" if k == 0 else f"trajectories_ep{episode}.png"
+            figures.append(plot_trajectories(main_result.records, out / name,
+                                             f"{method.label}, {settings.describe()}", episode=episode))
+    data = {
+        "command": " ".join(["python -m sitl.swarm_test", *args.argv]),
+        "settings": {**dataclasses.asdict(settings), "eval_seed": settings.env_seed},
+        "config": main_result.sim_config.to_dict(),
+        **main_result.to_json(),
+        # The reference's records without paths: they would double the file for no figure.
+        "references": {r.method.label: r.to_json(with_paths=False) for r in results[1:]},
+    }
+    if mavlink_info is not None:
+        data["mavlink"] = mavlink_info
+    metrics_path = out / "metrics.json"
+    try:
+        _write_json(metrics_path, data)
+        if args.json:
+            _write_json(args.json, data)
+    except OSError as err:  # e.g. the disk filled during the run
+        print(f"error: cannot write the metrics: {err}", file=sys.stderr)
+        return 1
+
+    rows = [([r.method.label], r.summary) for r in results]
+    print(f"\n{settings.describe()}, eval seed {settings.env_seed}")
+    print(markdown_table(["method"], rows))
+    for r in results:
+        sim_s = sum(rec.duration_s for rec in r.records) / settings.num_uavs
+        print(f"{r.method.label}: {settings.episodes} episodes in {r.wall_s:.1f} s "
+              f"({r.episodes_per_s:.1f} episodes/s, ~{sim_s:.0f} swarm-seconds)")
+    if mavlink_info is not None:
+        agree, costs = mavlink_info["agreement"], mavlink_info["costs"]
+        print(f"MAVLink vs in-process on the same episodes: success {agree['success_mavlink']:.3f} vs "
+              f"{agree['success_in_process']:.3f} ({agree['success_difference_points']:+.1f} points), SPL "
+              f"{agree['spl_mavlink']:.3f} vs {agree['spl_in_process']:.3f}")
+        print(f"cost: companion CPU median {100 * (costs['companion_cpu_fraction_median'] or 0):.1f} % of a core, "
+              f"missed control ticks {costs['missed_ticks_total']} of "
+              f"{costs['missed_ticks_total'] + costs['policy_steps_total']}, frame-to-setpoint p99 median "
+              f"{costs['frame_to_setpoint_p99_ms_median']} ms, world CPU median "
+              f"{100 * (costs['world_cpu_fraction_median'] or 0):.1f} %; logs in {out / 'episodes'}")
+    names = [p.name for p in figures] + [metrics_path.name]
+    print(f"output folder {out}: {', '.join(names)}" + (f"; metrics also in {args.json}" if args.json else ""))
+    return 0
+
+
+def _int_list(text: str) -> list[int]:
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+    if not values or min(values) < 1 or max(values) > MAX_VEHICLES:
+        raise argparse.ArgumentTypeError(f"expected integers in 1..{MAX_VEHICLES}, got {text!r}")
+    return values
+
+
+def _density_list(text: str) -> list[str]:
+    names = [v.strip() for v in text.split(",") if v.strip()]
+    for name in names:
+        _density(name)
+    if not names:
+        raise argparse.ArgumentTypeError("expected at least one density")
+    return names
+
+
+def parse_paper_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = ArgumentParser(
+        prog="python -m sitl.swarm_test paper",
+        description="Reproduce the paper's Table II (random scenes x densities x methods) and Fig. 6 "
+                    "(circle, success against N). One JSON per cell under OUT/cells; a cell already "
+                    "computed with the same settings and policy file is skipped, so an interrupted run resumes.")
+    parser.add_argument("--out", type=output_dir, default=Path("runs/paper"), help="output folder (default runs/paper)")
+    parser.add_argument("--policies", default="",
+                        help="METHOD=PATH,... for " + ", ".join(PAPER_METHODS) +
+                             " (default models/policy_<method>.pt; a missing file is a 'not trained' row)")
+    parser.add_argument("--table-n", type=int_range(1, MAX_VEHICLES), default=8, help="UAVs in the Table II scenes (default 8)")
+    parser.add_argument("--densities", type=_density_list, default=list(DENSITIES),
+                        help="Table II densities (default small,medium,large)")
+    parser.add_argument("--ns", type=_int_list, default=list(DEFAULT_FIG6_NS),
+                        help="Fig. 6 swarm sizes (default " + ",".join(map(str, DEFAULT_FIG6_NS)) + ")")
+    parser.add_argument("--radius", type=float_range(0.0, MAX_RADIUS_M, low_open=True), default=CIRCLE_RADIUS_M,
+                        help=f"Fig. 6 circle radius in m (default {CIRCLE_RADIUS_M:g})")
+    parser.add_argument("--table-episodes", type=int_range(1, MAX_EPISODES), default=None,
+                        help="episodes per Table II cell (default 500: random-scene success differs between "
+                             "methods by a few points, which 100 episodes cannot resolve; cells are cheap)")
+    _add_common(parser)
+    args = parser.parse_args(argv)
+    if args.episodes is None:
+        args.episodes = 100
+    if args.table_episodes is None:
+        args.table_episodes = max(500, args.episodes)
+    try:
+        args.policy_paths = parse_policies(args.policies)
+    except ValueError as err:
+        parser.error(str(err))
+    return args
+
+
+def paper_main(argv: list[str] | None = None) -> int:
+    args = parse_paper_args(argv)
+    import torch
+
+    torch.set_num_threads(args.threads)
+    table, fig6 = paper_cells(args.episodes, args.seed, args.dynamics, args.camera_noise, args.max_steps, args.batch,
+                              args.policy_paths, args.table_n, args.densities, args.ns, args.radius,
+                              args.table_episodes)
+    for method, path in args.policy_paths.items():
+        if not path.exists():
+            print(f"{method}: {path} not found, reported as 'not trained'", file=sys.stderr)
+    try:
+        result = run_paper(args.out, table, fig6, args.progress, args.policy_paths)
+    except (EvaluationError, OSError) as err:  # OSError: the output folder became unwritable
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    counts = {k: list(result["status"].values()).count(k) for k in ("computed", "stored", "not trained")}
+    print((args.out / "paper.md").read_text())
+    print(f"\ncells: {counts['computed']} computed, {counts['stored']} reused, {counts['not trained']} not trained; "
+          f"wrote {args.out / 'paper.md'}, {args.out / 'paper.json'}, {args.out / 'fig6_scaling.png'}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["paper"]:
+        return paper_main(argv[1:])
+    args = parse_args(argv)
+    args.argv = argv
+    if args.mavlink:
+        # Ctrl-C and SIGTERM must reach the cleanup that stops the children, even when this
+        # process was started with SIGINT ignored (e.g. in the background of a script).
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGTERM, signal.default_int_handler)
+    try:
+        return run_single(args)
+    except KeyboardInterrupt:  # every child process is already stopped (sitl.realtime.mavlink_swarm)
+        print("interrupted", file=sys.stderr)
+        return 130

@@ -1,0 +1,477 @@
+"""The training loop (paper Alg. 1) and the factories that build its parts (``make_*``).
+
+All UAVs of all simulated worlds act with one policy and feed one replay buffer
+(centralised training, decentralised execution). :func:`make_trainer` builds the
+environment, the VAE (method ``vae``: trained here, before the trainer exists), the agent
+and the buffer; :class:`Trainer` runs the loop, validates, checkpoints and exports.
+The agent and its equations are in :mod:`sitl.learn.agent`; the command line is
+``python -m sitl.train`` (:mod:`sitl.learn.cli`).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import pickle
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from companion.spec import DEFAULT_ACTION_SPEC, STATE_DIM
+from sitl.learn.agent import AgentConfig, SacAeAgent
+from sitl.learn.buffer import FrameReplayBuffer
+from sitl.learn.config import TrainConfig, evaluation_scenarios, make_sim_config
+from sitl.learn.export import export_policy
+from sitl.sim.config import SimConfig
+from sitl.sim.env import SwarmEnv
+from sitl.sim.episodes import ActorFactory, depth_state_actor, run_episodes
+from sitl.sim.metrics import summarize
+from sitl.sim.scenarios import EVAL_SEED_OFFSET, VALIDATION_SEED_OFFSET
+
+#: Evaluation episodes flown at once as parallel worlds (as ``swarm_test --batch``).
+EVAL_BATCH_WORLDS = 100
+
+
+def evaluate_scenario(make_actor: ActorFactory, cfg: TrainConfig, scenario_name: str, episodes: int,
+                      seed: int) -> dict:
+    """Summary of ``episodes`` episodes of ``cfg``'s worlds in one scenario, up to ``EVAL_BATCH_WORLDS`` at a time.
+
+    The episodes are ``swarm_test``'s starts and goals for the same seed and scenario
+    (:func:`sitl.sim.episodes.run_episodes`), flown with ``cfg.max_episode_steps`` as the time
+    limit (the trainer's, 200 steps by default; ``swarm_test`` flies 400).
+    """
+    sim_config = make_sim_config(cfg, min(episodes, EVAL_BATCH_WORLDS), scenario_name=scenario_name)
+    return summarize(run_episodes(make_actor, sim_config, seed, episodes))
+
+
+def agent_actor(agent: SacAeAgent) -> ActorFactory:
+    """The factory of a training agent's deterministic actor."""
+    return depth_state_actor(lambda depth, state: agent.act(depth, state, explore=False))
+
+
+
+
+
+def plot_learning_curve(history: dict, path: Path, title: str) -> None:
+    """Paper Fig. 4 style: average episode reward (and success rate) against episodes."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    episodes = np.asarray(history["episode"])
+    fig, (ax_r, ax_s) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
+    for key, ax, label in (("return", ax_r, "average reward per UAV"), ("success", ax_s, "success rate")):
+        values = np.asarray(history[key], dtype=float)
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+        if len(values) == 0:
+            ax.text(0.5, 0.5, "no finished episode yet", ha="center", transform=ax.transAxes)
+            continue
+        window = max(1, min(50, len(values) // 10))
+        smooth = np.convolve(values, np.ones(window) / window, mode="valid")
+        ax.plot(episodes, values, color="tab:green", alpha=0.25, lw=0.8)
+        ax.plot(episodes[window - 1:], smooth, color="tab:green", lw=2)
+    if history.get("eval_episode"):
+        ax_s.plot(history["eval_episode"], history["eval_success"], "o-", color="tab:blue", label="evaluation")
+        ax_s.legend()
+    ax_s.set_xlabel("episode")
+    ax_r.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+STAGE_COUNTERS = ("updates", "env_steps", "transitions", "episodes", "wall_s")
+
+
+def add_counters(counters: dict, earlier: dict) -> dict:
+    """A run's counters plus those of the stages it started from (provenance of curricula)."""
+    return {n: counters[n] + earlier.get(n, 0) for n in STAGE_COUNTERS}
+
+
+def snapshot_counters(snapshot: Path) -> dict:
+    """Training that went into a validated snapshot ``RUN/snapshots/agent_<updates>.pt``.
+
+    Updates and wall time come from the snapshot's row in ``validation.json``; so do
+    environment steps, transitions and episodes where the row records them (rows written
+    before it did get them scaled from the run's totals by the update count).
+    """
+    run_dir = snapshot.parent.parent
+    try:
+        rows = json.loads((snapshot.parent / "validation.json").read_text())
+        ckpt = torch.load(run_dir / "checkpoint.pt", weights_only=False)
+        row = next(r for r in rows if snapshot.name == f"agent_{r['updates']}.pt")
+    except (OSError, ValueError, StopIteration) as err:
+        raise ValueError(f"--init-from {snapshot}: not a snapshot of a run directory with its "
+                         f"validation.json and checkpoint.pt ({err})") from None
+    total = ckpt["counters"]
+    share = row["updates"] / max(total["updates"], 1)
+    counters = {"updates": row["updates"], "wall_s": row["wall_s"],
+                **{n: row.get("counters", {}).get(n, round(total[n] * share))
+                   for n in ("env_steps", "transitions", "episodes")}}
+    return add_counters(counters, ckpt.get("initial_stage", {}))
+
+
+def snapshot_score(row: dict) -> float:
+    """A validated snapshot's score: the ``sitl.rescore`` one where present, else the training-time one."""
+    return row["rescored"]["score"] if "rescored" in row else row["score"]
+
+
+def select_snapshot(rows: list[dict]) -> dict:
+    """The best row of ``validation.json``; rescored rows (``sitl.rescore``) compete only among themselves."""
+    rescored = [row for row in rows if "rescored" in row]
+    return max(rescored or rows, key=lambda row: (snapshot_score(row), row["updates"]))
+
+
+def _atomic_save(obj, path: Path) -> None:
+    tmp = path.with_suffix(".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)  # a run killed mid-save keeps its previous checkpoint
+
+
+def make_agent(agent_cfg: AgentConfig, sim_config: SimConfig, device: str = "cpu",
+               vae_encoder: torch.nn.Module | None = None) -> SacAeAgent:
+    """The agent of ``agent_cfg`` for ``sim_config``'s camera.
+
+    Method ``vae`` without a trained ``vae_encoder`` gets a blank one, whose weights a
+    checkpoint or snapshot then loads.
+    """
+    cam = sim_config.camera
+    if agent_cfg.method == "vae" and vae_encoder is None:
+        from sitl.learn.vae import VAEEncoder
+
+        vae_encoder = VAEEncoder(cam.frames, cam.height, cam.width, agent_cfg.latent_dim)
+    return SacAeAgent(agent_cfg, cam, DEFAULT_ACTION_SPEC, device, vae_encoder)
+
+
+# --------------------------------------------------------------------------- the loop
+
+def make_env(cfg: TrainConfig) -> SwarmEnv:
+    """The training worlds of ``cfg`` (``cfg.num_worlds`` of them, seeded with ``cfg.seed``)."""
+    return SwarmEnv(make_sim_config(cfg, cfg.num_worlds), seed=cfg.seed)
+
+
+def make_buffer(cfg: TrainConfig, env: SwarmEnv) -> FrameReplayBuffer:
+    """The replay buffer for ``env``'s UAVs and camera."""
+    cam = env.config.camera
+    return FrameReplayBuffer(cfg.replay_capacity, env.num_agents, cam.frames, cam.height, cam.width,
+                             STATE_DIM, DEFAULT_ACTION_SPEC.dim, seed=cfg.seed)
+
+
+def make_trainer(cfg: TrainConfig, agent_cfg: AgentConfig, run_dir: Path, resume: bool = False) -> "Trainer":
+    """Build a run's parts in order — environment, VAE (method ``vae``, trained now unless resuming:
+    the checkpoint holds it), agent, buffer — then the :class:`Trainer` that runs them."""
+    torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)  # before any network is built: the same seed gives the same run
+    env = make_env(cfg)
+    vae_encoder = None
+    if agent_cfg.method == "vae" and not resume:
+        from sitl.learn.vae_data import make_vae_encoder
+
+        vae_encoder = make_vae_encoder(env.config, cfg.seed, cfg.vae_images, cfg.vae_epochs, cfg.vae_policy,
+                                       log=Trainer.log)
+    agent = make_agent(agent_cfg, env.config, cfg.device, vae_encoder)
+    return Trainer(cfg, agent_cfg, run_dir, env, agent, make_buffer(cfg, env), resume=resume)
+
+
+class Trainer:
+    """One training run's loop: acting, learning, validation, logs, checkpoints and export.
+
+    Its parts are built beforehand (:func:`make_trainer`); constructing it only restores a
+    checkpoint (``resume``) or another run's networks (``cfg.init_from``).
+    """
+
+    def __init__(self, cfg: TrainConfig, agent_cfg: AgentConfig, run_dir: Path, env: SwarmEnv, agent: SacAeAgent,
+                 buffer: FrameReplayBuffer, resume: bool = False) -> None:
+        self.cfg, self.agent_cfg, self.run_dir = cfg, agent_cfg, run_dir
+        self.env, self.agent, self.buffer = env, agent, buffer
+        self.sim_config = env.config
+        self.counters = {"env_steps": 0, "transitions": 0, "episodes": 0, "updates": 0, "wall_s": 0.0,
+                         "update_credit": 0.0}
+        self.history: dict[str, list] = {"episode": [], "return": [], "success": [], "eval_episode": [],
+                                         "eval_success": [], "eval_spl": []}
+        from torch.utils.tensorboard import SummaryWriter
+
+        self.writer = SummaryWriter(str(run_dir / "tb"))
+        #: counters of the run this one started from (``init_from``), for the provenance
+        self.initial_stage: dict = {}
+        if resume:
+            try:
+                ckpt = torch.load(run_dir / "checkpoint.pt", weights_only=False)
+            except (OSError, RuntimeError, EOFError, pickle.UnpicklingError) as err:
+                raise ValueError(f"cannot resume: {run_dir / 'checkpoint.pt'} is not a readable checkpoint "
+                                 f"({str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__})") from None
+            self._restore(ckpt)
+        elif cfg.init_from:
+            self._init_from(Path(cfg.init_from))
+
+    @staticmethod
+    def log(message: str) -> None:
+        print(message, file=sys.stderr, flush=True)
+
+    # -------------------------------------------------------------- checkpoints
+    def save_checkpoint(self) -> None:
+        _atomic_save({
+            "agent": self.agent.checkpoint(), "buffer": self.buffer.state_dict(), "counters": dict(self.counters),
+            "history": self.history, "env_rng": self.env.rng.bit_generator.state,
+            "torch_rng": torch.get_rng_state(), "initial_stage": self.initial_stage,
+        }, self.run_dir / "checkpoint.pt")
+        plot_learning_curve(self.history, self.run_dir / "learning_curve.png", self._title())
+
+    def _restore(self, ckpt: dict) -> None:
+        self.agent.restore(ckpt["agent"])
+        self.buffer.load_state_dict(ckpt["buffer"])
+        self.counters = ckpt["counters"]
+        self.history = ckpt["history"]
+        self.env.rng.bit_generator.state = ckpt["env_rng"]
+        torch.set_rng_state(ckpt["torch_rng"])
+        self.initial_stage = ckpt.get("initial_stage", {})
+        self.log(f"resumed from {self.run_dir / 'checkpoint.pt'}: {self.counters['updates']} updates, "
+                 f"{self.counters['episodes']} episodes")
+
+    def _init_from(self, path: Path) -> None:
+        """Start from another run's networks; buffer and counters start afresh.
+
+        ``path`` is a run directory or its ``checkpoint.pt`` (networks, optimiser states and
+        temperature at the end of that run) or one of its validated snapshots
+        ``snapshots/agent_<updates>.pt`` (networks and temperature; optimisers start afresh).
+        Either way this run's learning rates apply.
+        """
+        if path.is_dir():
+            path = path / "checkpoint.pt"
+        if not path.is_file():
+            raise FileNotFoundError(f"--init-from {path}: no such checkpoint")
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # torch.load's note on TorchScript archives: refused below
+                ckpt = torch.load(path, weights_only=False)
+        except Exception as err:  # noqa: BLE001 - any unreadable file gets the same clear refusal
+            raise ValueError(f"--init-from {path}: not a readable training checkpoint ({err})") from None
+        if not isinstance(ckpt, dict):
+            raise ValueError(f"--init-from {path}: not a training checkpoint or snapshot but a "
+                             f"{type(ckpt).__name__} (an exported policy.pt cannot be trained further; "
+                             "pass the run directory it came from)")
+        is_snapshot = "agent" not in ckpt
+        try:
+            if is_snapshot:
+                self.agent.load_state_dict(ckpt)
+            else:
+                self.agent.restore(ckpt["agent"])
+        except (RuntimeError, KeyError, ValueError, TypeError) as err:
+            raise ValueError(f"--init-from {path}: its networks do not match this run's agent settings "
+                             f"(method, hidden_dim, image_size, ...): {str(err)[:300]}") from None
+        self.agent.apply_learning_rates()
+        self.initial_stage = snapshot_counters(path) if is_snapshot else \
+            add_counters(ckpt["counters"], ckpt.get("initial_stage", {}))  # that run may itself be a later stage
+        self.log(f"initialised from {path}: {self.initial_stage['updates']} updates, "
+                 f"{self.initial_stage['wall_s'] / 60:.1f} min of training")
+
+    def _title(self) -> str:
+        c = self.cfg
+        return f"{c.method}, {c.scenario} {c.density}, N={c.num_uavs}"
+
+    # -------------------------------------------------------------- helpers
+    def finished(self) -> bool:
+        c, k = self.cfg, self.counters
+        return (c.total_updates > 0 and k["updates"] >= c.total_updates) or \
+               (c.max_episodes > 0 and k["episodes"] >= c.max_episodes)
+
+    def evaluate(self, episodes: int, seed_offset: int = EVAL_SEED_OFFSET) -> dict[str, dict]:
+        """Deterministic evaluation on unseen seeds (test seeds by default), one summary per evaluation scenario."""
+        return {name: evaluate_scenario(agent_actor(self.agent), self.cfg, name, episodes, seed_offset + self.cfg.seed)
+                for name in evaluation_scenarios(self.cfg)}
+
+    def validate(self, write=print) -> None:
+        """Evaluate on the validation seeds, log it, and keep a snapshot when selecting the best."""
+        cfg, k = self.cfg, self.counters
+        summaries = self.evaluate(cfg.eval_episodes, VALIDATION_SEED_OFFSET)
+        if cfg.select_best:
+            self._keep_snapshot(summaries)
+        self.history["eval_episode"].append(k["episodes"])
+        # The curve shows the mean over the evaluation scenarios; TensorBoard each one.
+        self.history["eval_success"].append(float(np.mean([s["success_rate"] for s in summaries.values()])))
+        self.history["eval_spl"].append(float(np.mean([s["spl"] for s in summaries.values()])))
+        for name, summary in summaries.items():
+            suffix = "" if len(summaries) == 1 else f"_{name}"
+            self.writer.add_scalar(f"eval/success_rate{suffix}", summary["success_rate"], k["updates"])
+            self.writer.add_scalar(f"eval/spl{suffix}", summary["spl"], k["updates"])
+            write(f"validation @ {k['updates']} updates ({k['episodes']} training episodes), {name} "
+                  f"({cfg.eval_episodes} episodes): success {summary['success_rate']:.3f}, SPL {summary['spl']:.3f}")
+
+    def _validated_updates(self) -> set[int]:
+        index_path = self.run_dir / "snapshots" / "validation.json"
+        return {row["updates"] for row in json.loads(index_path.read_text())} if index_path.exists() else set()
+
+    def _keep_snapshot(self, summaries: dict[str, dict]) -> None:
+        """Save the networks with their validation result (``select_best``)."""
+        folder = self.run_dir / "snapshots"
+        folder.mkdir(exist_ok=True)
+        updates = self.counters["updates"]
+        score = float(np.mean([s["success_rate"] for s in summaries.values()]))
+        torch.save(self.agent.state_dict(), folder / f"agent_{updates}.pt")
+        index_path = folder / "validation.json"
+        index = json.loads(index_path.read_text()) if index_path.exists() else []
+        index = [row for row in index if row["updates"] != updates]
+        counters = {n: self.counters[n] for n in ("env_steps", "transitions", "episodes")}
+        index.append({"updates": updates, "wall_s": round(time.perf_counter() - self._started, 1), "score": score,
+                      "counters": counters,
+                      **{name: {"success_rate": s["success_rate"], "spl": s["spl"]} for name, s in summaries.items()}})
+        index_path.write_text(json.dumps(index, indent=1))
+
+    def _restore_best_snapshot(self) -> dict | None:
+        """Load the best validated networks into the agent; returns that snapshot's row."""
+        index_path = self.run_dir / "snapshots" / "validation.json"
+        if not index_path.exists():
+            return None
+        best = select_snapshot(json.loads(index_path.read_text()))
+        self.agent.load_state_dict(torch.load(self.run_dir / "snapshots" / f"agent_{best['updates']}.pt"))
+        how = "rescored" if "rescored" in best else "validation success"
+        self.log(f"selected the snapshot at {best['updates']} updates ({how} {snapshot_score(best):.3f})")
+        return best
+
+    # -------------------------------------------------------------- main loop
+    def run(self) -> Path:
+        from tqdm import tqdm
+
+        cfg, env, agent, buffer, k = self.cfg, self.env, self.agent, self.buffer, self.counters
+        obs = env.reset()
+        everyone = np.arange(env.num_agents)
+        buffer.start_episodes(everyone, obs.depth[:, -1])
+        returns = np.zeros(env.num_agents)
+        low, high = env.action_spec.low_array(), env.action_spec.high_array()
+        rng = np.random.default_rng(cfg.seed + k["env_steps"])
+        total = cfg.total_updates if cfg.total_updates > 0 else cfg.max_episodes
+        unit = "update" if cfg.total_updates > 0 else "episode"
+        bar = tqdm(total=total, initial=k["updates"] if unit == "update" else k["episodes"], unit=unit,
+                   desc=self._title(), file=sys.stderr, dynamic_ncols=True, mininterval=2.0)
+        started = self._started = time.perf_counter() - k["wall_s"]
+        last_ckpt = time.perf_counter()
+        next_eval = (k["updates"] // cfg.eval_every_updates + 1) * cfg.eval_every_updates if cfg.eval_every_updates else math.inf
+        window_t, window_steps, window_updates = time.perf_counter(), 0, 0
+        latest_losses: dict[str, float] = {}
+
+        while not self.finished():
+            acting = env.acting.copy()
+            rows = np.flatnonzero(acting)
+            if k["transitions"] < cfg.init_steps and not cfg.init_from:
+                action = rng.uniform(low, high, size=(env.num_agents, env.action_spec.dim)).astype(np.float32)
+            else:
+                action = agent.act(obs.depth, obs.state, explore=True)
+            state = obs.state
+            obs, reward, terminated, truncated, info = env.step(action)
+            buffer.add(rows, state[rows], agent.to_unit_action(action[rows]), reward[rows], obs.depth[rows, -1],
+                       obs.state[rows], terminated[rows])
+            returns += reward
+            k["env_steps"] += 1
+            k["transitions"] += len(rows)
+            k["update_credit"] += cfg.updates_per_env_step
+            window_steps += len(rows)
+
+            done_worlds = env.world_done
+            if done_worlds.any():
+                episode_ids = env.world_episode.copy()
+                obs = env.reset_worlds(done_worlds)
+                for b in np.flatnonzero(done_worlds):
+                    world_rows = slice(b * env.uavs_per_world, (b + 1) * env.uavs_per_world)
+                    records = [r for r in env.completed if r.episode == episode_ids[b]]
+                    success = float(np.mean([r.success for r in records])) if records else 0.0
+                    k["episodes"] += 1
+                    self.history["episode"].append(k["episodes"])
+                    self.history["return"].append(float(returns[world_rows].mean()))
+                    self.history["success"].append(success)
+                    self.writer.add_scalar("charts/episode_reward", returns[world_rows].mean(), k["episodes"])
+                    self.writer.add_scalar("charts/success_rate", success, k["episodes"])
+                    returns[world_rows] = 0.0
+                    k["update_credit"] += cfg.updates_per_episode
+                    if unit == "episode":
+                        bar.update(1)
+                env.completed.clear()
+                reset_rows = np.flatnonzero(np.repeat(done_worlds, env.uavs_per_world))
+                buffer.start_episodes(reset_rows, obs.depth[reset_rows, -1])
+
+            if k["transitions"] >= cfg.init_steps and buffer.size >= cfg.batch_size:
+                todo = int(k["update_credit"])
+                if cfg.total_updates > 0:
+                    todo = min(todo, cfg.total_updates - k["updates"])
+                for _ in range(todo):
+                    latest_losses |= agent.update(buffer.sample(cfg.batch_size, agent.device, agent.config.n_step,
+                                                                agent.config.discount))
+                    k["updates"] += 1
+                    window_updates += 1
+                    if unit == "update":
+                        bar.update(1)
+                    if k["updates"] % 100 == 0:
+                        for name, value in latest_losses.items():
+                            self.writer.add_scalar(name, value, k["updates"])
+                k["update_credit"] -= todo
+            else:
+                k["update_credit"] = 0.0  # no debt piles up while the buffer fills
+
+            now = time.perf_counter()
+            if now - window_t > 10:
+                env_rate, upd_rate = window_steps / (now - window_t), window_updates / (now - window_t)
+                self.writer.add_scalar("charts/transitions_per_s", env_rate, k["updates"])
+                self.writer.add_scalar("charts/updates_per_s", upd_rate, k["updates"])
+                bar.set_postfix(ep=k["episodes"], succ=f"{np.mean(self.history['success'][-20:] or [0]):.2f}",
+                                sps=f"{env_rate:.0f}", ups=f"{upd_rate:.2f}")
+                window_t, window_steps, window_updates = now, 0, 0
+            if k["updates"] >= next_eval:
+                self.validate(write=bar.write)
+                next_eval += cfg.eval_every_updates
+            if now - last_ckpt > cfg.checkpoint_every_s:
+                k["wall_s"] = time.perf_counter() - started
+                self.save_checkpoint()
+                last_ckpt = time.perf_counter()
+
+        bar.close()
+        k["wall_s"] = time.perf_counter() - started
+        self.save_checkpoint()
+        return self.finish()
+
+    def finish(self) -> Path:
+        """Final evaluation on unseen seeds, then export policy.pt with its provenance."""
+        cfg, k = self.cfg, self.counters
+        if cfg.select_best and cfg.eval_every_updates and k["updates"] not in self._validated_updates():
+            # The last networks are candidates too, also when the run does not end on a validation.
+            self.validate(write=self.log)
+            self.save_checkpoint()  # its history (and learning curve) now include that validation
+        selected = self._restore_best_snapshot() if cfg.select_best else None
+        self.log(f"final evaluation: {cfg.final_eval_episodes} episodes, seeds >= {EVAL_SEED_OFFSET}")
+        summaries = self.evaluate(cfg.final_eval_episodes) if cfg.final_eval_episodes else {}
+        before = self.initial_stage
+        provenance = {
+            "method": cfg.method, "scenario": cfg.scenario, "density": cfg.density, "num_uavs": cfg.num_uavs,
+            "preset": cfg.preset, "updates": k["updates"] + before.get("updates", 0),
+            "env_steps": k["env_steps"] + before.get("env_steps", 0),
+            "transitions": k["transitions"] + before.get("transitions", 0),
+            "episodes": k["episodes"] + before.get("episodes", 0),
+            "wall_time_s": round(k["wall_s"] + before.get("wall_s", 0.0), 1),
+            "seed": cfg.seed, "device": cfg.device, "threads": cfg.threads,
+        }
+        if selected is not None:
+            provenance["selected_snapshot"] = selected  # trained for wall_time_s; these networks are from here
+        if cfg.init_from:
+            provenance["stages"] = [{"init_from": cfg.init_from, **before},
+                                    {"scenario": cfg.scenario, **{n: k[n] for n in ("updates", "env_steps",
+                                     "transitions", "episodes")}, "wall_s": round(k["wall_s"], 1)}]
+        for i, (name, summary) in enumerate(summaries.items()):
+            # The first evaluation scenario is "evaluation" (what evaluators read); others get a suffix.
+            key = "evaluation" if i == 0 else f"evaluation_{name}"
+            provenance[key] = {"episodes": cfg.final_eval_episodes, "seed": EVAL_SEED_OFFSET + cfg.seed,
+                               "scenario": name, "density": cfg.density, **summary}
+        path = self.run_dir / "policy.pt"
+        export_policy(self.agent, path, self.sim_config.control_period_s, provenance)
+        (self.run_dir / "final_eval.json").write_text(json.dumps(provenance, indent=2))
+        self.writer.close()
+        for name, summary in summaries.items():
+            self.log(f"{name}: success {summary['success_rate']:.3f}, SPL {summary['spl']:.3f}")
+        self.log(f"wrote {path}")
+        return path
+
+
