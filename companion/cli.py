@@ -173,7 +173,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="arm, take off and switch to OFFBOARD/GUIDED automatically (SITL and tests; needs --takeoff)")
     flight.add_argument("--takeoff", type=_positive("--takeoff", 100), metavar="ALT",
                         help="take-off altitude in metres above home for --arm")
-    flight.add_argument("--land-on-arrival", action="store_true", help="land once within 0.5 m of the goal")
+    flight.add_argument("--land-on-arrival", action="store_true", help="land once arrived (within the policy's arrival radius, policy.json task; 0.5 m by default)")
     flight.add_argument("--exit-on-arrival", action="store_true",
                         help="exit 0 once arrived (and landed with --land-on-arrival), non-zero on any failure")
     flight.add_argument("--timeout", type=_positive("--timeout"), metavar="S", help="exit 7 if not arrived within S seconds")

@@ -20,12 +20,15 @@ action bounds. Normalisation happens inside the module, so callers pass raw metr
       "body_frame": "heading FRD ...",
       "state_names": ["goal_fwd_m", ...],
       "action": {"names": [...], "low": [...], "high": [...]},
+      "task": {"collision_radius_m": 0.3, "arrival_radius_m": 0.5, "max_episode_steps": 400},
       "provenance": {"method": ..., "scenario": ..., "steps": ..., "wall_time_s": ...,
                      "git_commit": ..., "evaluation": {...}}
     }
 
 :func:`load_policy` validates a file against this contract and refuses anything else with
-a :class:`PolicyFileError` that says what is wrong.
+a :class:`PolicyFileError` that says what is wrong. ``task`` (the collision radius, arrival
+radius and time limit the policy was trained for, :class:`companion.spec.TaskSpec`) was added
+within version 1: a file without it was trained for the defaults and reads as them.
 """
 
 from __future__ import annotations
@@ -46,9 +49,11 @@ from companion.spec import (
     POLICY_MAX_FRAMES,
     POLICY_MAX_IMAGE_SIDE_PX,
     POLICY_MAX_RANGE_M,
+    DEFAULT_TASK_SPEC,
     STATE_NAMES,
     ActionSpec,
     CameraSpec,
+    TaskSpec,
 )
 
 FORMAT_VERSION = 1
@@ -61,8 +66,9 @@ class PolicyFileError(ValueError):
     """A file that is not a valid swarmnav policy."""
 
 
-def build_metadata(camera: CameraSpec, action: ActionSpec, control_period_s: float, provenance: dict) -> dict:
-    """The ``policy.json`` content for a policy trained with ``camera`` and ``action``."""
+def build_metadata(camera: CameraSpec, action: ActionSpec, control_period_s: float, provenance: dict,
+                   task: TaskSpec = DEFAULT_TASK_SPEC) -> dict:
+    """The ``policy.json`` content for a policy trained with ``camera``, ``action`` and ``task``."""
     return {
         "format_version": FORMAT_VERSION,
         "depth": {
@@ -74,6 +80,7 @@ def build_metadata(camera: CameraSpec, action: ActionSpec, control_period_s: flo
         "body_frame": BODY_FRAME,
         "state_names": list(STATE_NAMES),
         "action": {"names": list(action.names), "low": list(action.low), "high": list(action.high)},
+        "task": task.to_dict(),
         "provenance": provenance,
     }
 
@@ -112,6 +119,7 @@ class LoadedPolicy:
     action: ActionSpec
     control_period_s: float
     path: str
+    task: TaskSpec = DEFAULT_TASK_SPEC
 
     def act(self, depth_m: np.ndarray, state: np.ndarray) -> np.ndarray:
         """Deterministic actions [B, 3] (float32) for a batch of observations."""
@@ -161,10 +169,10 @@ def _numbers(value: object, path: str, name: str, count: int) -> tuple[float, ..
     return tuple(_finite_number(v, path, f"{name}[{i}]") for i, v in enumerate(value))
 
 
-def _check_metadata(meta: object, path: str) -> tuple[CameraSpec, ActionSpec, float]:
+def _check_metadata(meta: object, path: str) -> tuple[CameraSpec, ActionSpec, float, TaskSpec]:
     """Check ``policy.json`` field by field (types first) against this companion's spec.
 
-    Returns the camera, action bounds and control period it declares; raises
+    Returns the camera, action bounds, control period and task it declares; raises
     :class:`PolicyFileError` naming the first bad field. Nothing from the file is used
     before its type and range are known, so a hostile file gets a reason, never a traceback.
     """
@@ -221,7 +229,20 @@ def _check_metadata(meta: object, path: str) -> tuple[CameraSpec, ActionSpec, fl
         _require(lo < hi, path, f"action {name}: low {lo:g} must be below high {hi:g}")
         _require(lo_max <= lo and hi <= hi_max, path,
                  f"action {name} bounds [{lo:g}, {hi:g}] exceed the onboard limits [{lo_max:g}, {hi_max:g}]")
-    return camera, ActionSpec(spec.names, low, high), float(period)
+    return camera, ActionSpec(spec.names, low, high), float(period), _check_task(meta.get("task"), path)
+
+
+def _check_task(task: object, path: str) -> TaskSpec:
+    """The ``task`` a policy was trained for (absent: the defaults, as in files written before it existed)."""
+    if task is None:
+        return DEFAULT_TASK_SPEC
+    _require(isinstance(task, dict), path, f"task must be a JSON object, file says {task!r:.40}")
+    radius = _finite_number(task.get("collision_radius_m"), path, "task collision_radius_m")
+    arrival = _finite_number(task.get("arrival_radius_m"), path, "task arrival_radius_m")
+    _require(0 < radius <= 10 and 0 < arrival <= 10, path,
+             f"task radii must be in (0, 10] m, file says collision {radius:g}, arrival {arrival:g}")
+    steps = _integer(task.get("max_episode_steps"), path, "task max_episode_steps", 1, 1_000_000)
+    return TaskSpec(collision_radius_m=radius, arrival_radius_m=arrival, max_episode_steps=steps)
 
 
 def load_policy(path: str | Path, *, check_forward: bool = True) -> LoadedPolicy:
@@ -247,9 +268,9 @@ def load_policy(path: str | Path, *, check_forward: bool = True) -> LoadedPolicy
         meta = json.loads(extra[METADATA_FILE])
     except json.JSONDecodeError as err:
         raise PolicyFileError(f"{path}: {METADATA_FILE} is not valid JSON ({err})") from err
-    camera, action, period_s = _check_metadata(meta, path)
+    camera, action, period_s, task = _check_metadata(meta, path)
     module.eval()
-    policy = LoadedPolicy(module, meta, camera, action, period_s, path)
+    policy = LoadedPolicy(module, meta, camera, action, period_s, path, task)
     if check_forward:
         blank_depth = np.full((1, camera.frames, camera.height, camera.width), camera.max_range_m, np.float32)
         blank_state = np.zeros((1, len(STATE_NAMES)), np.float32)

@@ -114,7 +114,7 @@ class CompanionConfig:
     land_on_arrival: bool = False
     exit_on_arrival: bool = False
     timeout_s: float | None = None
-    arrival_radius_m: float = 0.5
+    arrival_radius_m: float | None = None  # None: the policy's (policy.json task, 0.5 m by default)
     link_timeout_s: float = 2.0
     stale_periods: float = 1.5
     hold_stream_s: float = 1.5  # PX4 wants >= 1 s of setpoints before OFFBOARD: keep a margin
@@ -294,6 +294,8 @@ class Companion:
         self.notifier = notifier or SystemdNotifier()
         self.period_s = policy.control_period_s
         self.stale_s = config.stale_periods * self.period_s
+        self.arrival_radius_m = (policy.task.arrival_radius_m if config.arrival_radius_m is None
+                                 else config.arrival_radius_m)
         self.low = policy.action.low_array().astype(np.float64)
         self.high = policy.action.high_array().astype(np.float64)
         self.stack = DepthFrameStack(1, policy.camera)
@@ -768,7 +770,7 @@ class Companion:
         if odom is not None and self.link.odometry_age_s(now) <= self.stale_s:
             dist = float(np.linalg.norm(self.goal_ned - odom.pos_ned))
             info["dist_m"] = dist
-            if dist <= self.config.arrival_radius_m:
+            if dist <= self.arrival_radius_m:
                 return self._arrive(now, dist, info)
         problem = self._input_problem(now)
         if problem is not None:

@@ -136,6 +136,10 @@ HOSTILE = {
     "bounds_inf": (_meta(**{"action.low": [-INF] * 3, "action.high": [INF] * 3}), "action low[0] must be finite"),
     "bounds_100": (_meta(**{"action.low": [-100.0] * 3, "action.high": [100.0] * 3}),
                    "vel_fwd_m_s bounds [-100, 100] exceed the onboard limits [0, 2]"),
+    "task_not_object": (_meta(task="0.5"), "task must be a JSON object"),
+    "task_radius_nan": (_meta(**{"task.arrival_radius_m": float("nan")}), "task arrival_radius_m must be finite"),
+    "task_radius_huge": (_meta(**{"task.collision_radius_m": 50.0}), "task radii must be in (0, 10] m"),
+    "task_steps_fraction": (_meta(**{"task.max_episode_steps": 2.5}), "task max_episode_steps must be an integer"),
     "fwd_too_fast": (_meta(**{"action.high": [50.0, 0.5, 0.5]}), "vel_fwd_m_s bounds [0, 50] exceed"),
     "yaw_too_fast": (_meta(**{"action.low": [0.0, -0.5, -5.0]}), "yaw_rate_rad_s bounds [-5, 0.5] exceed"),
     "bounds_nan": (_meta(**{"action.high": [2.0, float("nan"), 0.5]}), "action high[1] must be finite"),
@@ -235,3 +239,17 @@ def test_the_companion_exits_3_with_the_reason_for_hostile_files(tmp_path):
         assert "Traceback" not in out + err
         exit_event = [json.loads(line) for line in out.splitlines() if '"exit"' in line][-1]
         assert cases[name][2] in exit_event["reason"], (name, exit_event)
+
+
+def test_the_task_a_policy_was_trained_for_is_recorded_and_read(tmp_path):
+    """policy.json's task (collision radius, arrival radius, time limit) is what the companion flies by;
+    a file written before the field existed reads as the defaults."""
+    from companion.spec import DEFAULT_TASK_SPEC, TaskSpec
+
+    task = TaskSpec(collision_radius_m=0.35, arrival_radius_m=0.8, max_episode_steps=300)
+    path = tmp_path / "task.pt"
+    save_policy(_Const(0.0), build_metadata(CAMERA, DEFAULT_ACTION_SPEC, 0.1, {}, task), path)
+    assert load_policy(path).task == task
+    old = _meta()
+    del old["task"]
+    assert load_policy(_write_raw(tmp_path / "old.pt", old)).task == DEFAULT_TASK_SPEC

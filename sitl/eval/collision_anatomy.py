@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from companion.frames import ned_to_frd
 from sitl.sim.config import CIRCLE_RADIUS_M, DENSITIES, ScenarioConfig, SimConfig
 from sitl.sim.env import COLLISION_UAV, SwarmEnv
 from sitl.eval.evaluate import EvalSettings, evaluate_method, sim_config_for
@@ -41,10 +42,8 @@ def in_view(pos_ned: np.ndarray, yaw_rad: np.ndarray, other_ned: np.ndarray, hfo
     Shapes broadcast: ``pos_ned``/``other_ned`` [..., 3], ``yaw_rad`` [...].
     """
     d = other_ned - pos_ned
-    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
-    fwd = c * d[..., 0] + s * d[..., 1]
-    right = -s * d[..., 0] + c * d[..., 1]
-    down = d[..., 2]
+    d_frd = ned_to_frd(d, yaw_rad)
+    fwd, right, down = d_frd[..., 0], d_frd[..., 1], d_frd[..., 2]
     return ((fwd > 0) & (np.abs(np.arctan2(right, fwd)) <= hfov_rad / 2)
             & (np.abs(np.arctan2(down, fwd)) <= vfov_rad / 2) & (np.linalg.norm(d, axis=-1) <= max_range_m))
 

@@ -10,6 +10,7 @@ import torch
 from torch import nn
 
 from companion.policy import build_metadata, save_policy
+from companion.spec import DEFAULT_TASK_SPEC, TaskSpec
 from sitl.learn.agent import SacAeAgent
 
 
@@ -43,10 +44,11 @@ def git_commit() -> str:
         return "unknown"
 
 
-def export_policy(agent: SacAeAgent, path: str | Path, control_period_s: float, provenance: dict) -> None:
-    """Write ``path`` as a TorchScript policy with ``policy.json`` metadata."""
+def export_policy(agent: SacAeAgent, path: str | Path, control_period_s: float, provenance: dict,
+                  task: TaskSpec = DEFAULT_TASK_SPEC) -> None:
+    """Write ``path`` as a TorchScript policy with ``policy.json`` metadata (``task``: what it was trained for)."""
     module = ExportedPolicy(agent).eval()
     metadata = build_metadata(agent.camera, agent.action_spec, control_period_s,
-                              {"git_commit": git_commit(), **provenance})
+                              {"git_commit": git_commit(), **provenance}, task)
     save_policy(module, metadata, path)
 

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from companion.spec import DEFAULT_ACTION_SPEC, STATE_DIM
+from companion.spec import DEFAULT_ACTION_SPEC, STATE_DIM, TaskSpec
 from sitl.learn.agent import AgentConfig, SacAeAgent
 from sitl.learn.buffer import FrameReplayBuffer
 from sitl.learn.config import TrainConfig, evaluation_scenarios, make_sim_config
@@ -466,7 +466,10 @@ class Trainer:
             provenance[key] = {"episodes": cfg.final_eval_episodes, "seed": EVAL_SEED_OFFSET + cfg.seed,
                                "scenario": name, "density": cfg.density, **summary}
         path = self.run_dir / "policy.pt"
-        export_policy(self.agent, path, self.sim_config.control_period_s, provenance)
+        task = TaskSpec(collision_radius_m=self.sim_config.collision_radius_m,
+                        arrival_radius_m=self.sim_config.reward.arrival_radius_m,
+                        max_episode_steps=self.sim_config.max_episode_steps)
+        export_policy(self.agent, path, self.sim_config.control_period_s, provenance, task)
         (self.run_dir / "final_eval.json").write_text(json.dumps(provenance, indent=2))
         self.writer.close()
         for name, summary in summaries.items():

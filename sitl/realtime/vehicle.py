@@ -48,7 +48,7 @@ from sitl.cli_args import (
 )
 from sitl.sim.collision import uav_uav_collisions
 from sitl.sim.dynamics import DYNAMICS_NAMES, make_dynamics
-from sitl.sim.env import _OUTCOME_NAMES, COLLISION_GROUND, COLLISION_UAV
+from sitl.sim.metrics import Outcome
 from sitl.realtime.camera_feed import CameraConfig, CameraFeed, add_camera_arguments, camera_config, check_camera_arguments
 from sitl.realtime.event_log import EventLog
 from sitl.realtime.loop import serve
@@ -60,8 +60,8 @@ PHYSICS_DT_S = 0.02
 MAX_PHYSICS_STEPS_PER_PASS = 5  # more than 0.1 s behind: drop the backlog, stay real time
 HARD_LANDING_M_S = 2.0
 TRACE_HZ = 10.0
-CRASH_UAV = _OUTCOME_NAMES[COLLISION_UAV]  # the crash event's outcome codes: the simulator's outcome names
-CRASH_GROUND = _OUTCOME_NAMES[COLLISION_GROUND]
+CRASH_UAV = Outcome.COLLISION_UAV.code  # the crash event's outcome codes: the simulator's outcome names
+CRASH_GROUND = Outcome.COLLISION_GROUND.code
 
 
 @dataclass(frozen=True)

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from companion.spec import CameraSpec
+from companion.spec import DEFAULT_TASK_SPEC, CameraSpec
 
 _EPS_FWD = 1e-3  # an object reaching closer than this to the image plane is not culled
 LANDED_CAMERA_HEIGHT_M = 0.15  # a landed quadrotor's camera is above its landing gear, not at z = 0
@@ -44,7 +44,7 @@ LANDED_CAMERA_HEIGHT_M = 0.15  # a landed quadrotor's camera is above its landin
 class SceneGeometry:
     """Shape of the UAV bodies as the camera sees them."""
 
-    body_radius_m: float = 0.3
+    body_radius_m: float = DEFAULT_TASK_SPEC.collision_radius_m  # the UAVs' collision radius R
     body_half_height_m: float = 0.12
 
 

@@ -33,13 +33,13 @@ from sitl.sim.camera import DepthCamera
 from sitl.sim.collision import ground_collisions, uav_uav_collisions
 from sitl.sim.config import SimConfig
 from sitl.sim.dynamics import make_dynamics
-from sitl.sim.metrics import UAVRecord
+from sitl.sim.metrics import Outcome, UAVRecord
 from sitl.sim.reward import nearest_depth_m, step_reward
 from sitl.sim.scenarios import sample_scenario
 
 # Outcome codes kept per UAV while an episode runs.
-RUNNING, ARRIVED, COLLISION_UAV, COLLISION_GROUND, TIMEOUT = range(5)
-_OUTCOME_NAMES = {ARRIVED: "arrived", COLLISION_UAV: "collision_uav", COLLISION_GROUND: "collision_ground", TIMEOUT: "timeout"}
+# The per-row outcome codes of ``SwarmEnv.outcome`` (see :class:`sitl.sim.metrics.Outcome`).
+RUNNING, ARRIVED, COLLISION_UAV, COLLISION_GROUND, TIMEOUT = Outcome
 
 
 @dataclass
@@ -225,7 +225,7 @@ class SwarmEnv:
             self.completed.append(UAVRecord(
                 episode=int(self.world_episode[b]), uav=i,
                 start_ned=self.start_ned[r].tolist(), goal_ned=self.goal_ned[r].tolist(),
-                outcome=_OUTCOME_NAMES[int(outcome)],
+                outcome=Outcome(int(outcome)).code,
                 path_length_m=float(self.path_length_m[r]),
                 straight_distance_m=float(np.linalg.norm(self.goal_ned[r] - self.start_ned[r])),
                 duration_s=float(self.flight_steps[r] * dt),

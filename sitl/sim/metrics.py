@@ -3,10 +3,29 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import IntEnum
 
 import numpy as np
 
-OUTCOMES = ("arrived", "collision_uav", "collision_ground", "timeout")
+
+class Outcome(IntEnum):
+    """How a UAV's episode ends: the simulator's per-row code and, as :attr:`code`, the name
+    records, logs and the simulated vehicles' crash events carry."""
+
+    RUNNING = 0
+    ARRIVED = 1
+    COLLISION_UAV = 2
+    COLLISION_GROUND = 3
+    TIMEOUT = 4
+
+    @property
+    def code(self) -> str:
+        """``"arrived"``, ``"collision_uav"``, ``"collision_ground"`` or ``"timeout"``."""
+        return self.name.lower()
+
+
+#: The names of the outcomes an episode ends with, in the order the metrics report them.
+OUTCOMES = tuple(o.code for o in Outcome if o is not Outcome.RUNNING)
 
 
 @dataclass

@@ -17,7 +17,8 @@ from pettingzoo import ParallelEnv
 
 from companion.spec import STATE_DIM
 from sitl.sim.config import SimConfig
-from sitl.sim.env import _OUTCOME_NAMES, SwarmEnv
+from sitl.sim.env import SwarmEnv
+from sitl.sim.metrics import Outcome
 
 
 class SwarmParallelEnv(ParallelEnv):
@@ -67,7 +68,7 @@ class SwarmParallelEnv(ParallelEnv):
         rewards = {a: float(reward[index[a]]) for a in live}
         terminations = {a: bool(terminated[index[a]]) for a in live}
         truncations = {a: bool(truncated[index[a]]) for a in live}
-        infos = {a: ({"outcome": _OUTCOME_NAMES[int(info["outcome"][index[a]])]}
-                     if info["outcome"][index[a]] in _OUTCOME_NAMES else {}) for a in live}
+        infos = {a: ({"outcome": Outcome(int(info["outcome"][index[a]])).code}
+                     if info["outcome"][index[a]] != Outcome.RUNNING else {}) for a in live}
         self.agents = [a for a in live if not (terminations[a] or truncations[a])]
         return observations, rewards, terminations, truncations, infos

@@ -84,4 +84,5 @@ def _integrate(pos, vel, yaw, yaw_rate, cmd, active, h, n_sub, tau_h, tau_v, tau
             pos[m, 0] += vel[m, 0] * h
             pos[m, 1] += vel[m, 1] * h
             pos[m, 2] += vel[m, 2] * h
+            # companion.frames.wrap_angle_rad, spelled out: this loop is compiled by numba
             yaw[m] = (yaw[m] + yaw_rate[m] * h + math.pi) % (2.0 * math.pi) - math.pi
