@@ -97,18 +97,19 @@ def float_range(low: float, high: float, *, low_open: bool = False, high_open: b
     return parse
 
 
-def udp_port(text: str) -> int:
-    """A port number in 0..65535 (0: none, where the option allows it)."""
-    if not text.isdigit() or not 0 <= int(text) <= 65535:
-        raise argparse.ArgumentTypeError(f"port must be a number in 0..65535, got {text!r}")
-    return int(text)
+def port_in(low: int, high: int):
+    """An argparse type for a port number in ``low .. high``."""
+    def parse(text: str) -> int:
+        if not text.isdigit() or not low <= int(text) <= high:
+            raise argparse.ArgumentTypeError(f"port must be a number in {low}..{high}, got {text!r}")
+        return int(text)
+    return parse
 
 
-def udp_port_nonzero(text: str) -> int:
-    """A port number in 1..65535 (something is sent to it)."""
-    if not text.isdigit() or not 1 <= int(text) <= 65535:
-        raise argparse.ArgumentTypeError(f"port must be a number in 1..65535, got {text!r}")
-    return int(text)
+#: A port number in 0..65535 (0: none, where the option allows it).
+udp_port = port_in(0, 65535)
+#: A port number in 1..65535 (something is sent to it).
+udp_port_nonzero = port_in(1, 65535)
 
 
 def check_port_block(parser: argparse.ArgumentParser, name: str, first: int, count: int) -> None:

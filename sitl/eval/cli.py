@@ -44,6 +44,7 @@ from sitl.cli_args import (
     int_range,
     output_dir,
     output_file_in_new_dir,
+    port_in,
 )
 from sitl.eval.over_mavlink import evaluate_beside_in_process
 from sitl.eval.evaluate import EvalResult, EvalSettings, density_label, evaluate_method
@@ -162,10 +163,7 @@ def _density(text: str) -> str:
     return text
 
 
-def _port(text: str) -> int:
-    if not text.isdigit() or not 1024 <= int(text) <= 65535:
-        raise argparse.ArgumentTypeError(f"port must be a number in 1024..65535, got {text!r}")
-    return int(text)
+_port = port_in(1024, 65535)  # unprivileged ports for the --mavlink processes
 
 
 def _scenario_tag(scenario: ScenarioConfig) -> str:
