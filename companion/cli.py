@@ -294,7 +294,7 @@ def _fly(args: argparse.Namespace, log) -> int:
             except OSError as err:
                 return fail(ExitCode.ERROR, f"cannot write the recording {args.record}: {err.strerror}")
         key = load_signing_key(args.signing_key) if args.signing_key else None  # checked by parse_args
-        link = AutopilotLink(args.connect, signing_key=key)
+        link = AutopilotLink(args.connect, signing_key=key, relock_after_s=args.link_timeout)
         try:
             link.open()
             hb = link.wait_for_autopilot(args.heartbeat_timeout)

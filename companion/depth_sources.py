@@ -260,8 +260,8 @@ class SitlDepthSource(DepthSource):
                     arrival = min(mono_now, mono_now - (wall_now - arrival_wall))
             received.append((data, arrival, arrival_wall))
         out: list[DepthFrame | DepthFault] = []
-        for index, (data, arrival, arrival_wall) in enumerate(received):
-            last = index == len(received) - 1
+        newest = None  # the newest decodable frame of our vehicle: the only one worth converting
+        for data, arrival, arrival_wall in received:
             try:
                 wire = decode_frame(data)
             except DepthFrameError as err:
@@ -273,23 +273,27 @@ class SitlDepthSource(DepthSource):
                 out.append(DepthFault(f"depth frame from vehicle {wire.vehicle}, but {self.name} is locked to "
                                       f"vehicle {self.vehicle}", arrival))
                 continue
-            if not last:
-                self.frames_superseded += 1  # a newer datagram follows: not worth converting
-                continue
-            problem = self.timing.check(wire.stamp_us, arrival_wall)
-            if problem is not None:
-                out.append(DepthFault(f"{problem} (seq {wire.seq}, {self.name})", arrival))
-                continue
-            try:
-                depth = self.converter.convert(wire.depth_m, wire.hfov_deg)
-            except DepthBlindedError as err:
-                out.append(DepthFault(f"{err} ({self.name})", arrival))
-                continue
-            except DepthFrameError as err:
-                out.append(DepthFault(f"malformed depth frame: {err}", arrival))
-                continue
-            out.append(DepthFrame(depth, arrival, wire.seq, wire.stamp_us))
+            if newest is not None:
+                self.frames_superseded += 1  # a newer datagram of ours follows: not worth converting
+            newest = (wire, arrival, arrival_wall)
+        # Faults first, then our newest frame: a stray datagram arriving after it (another vehicle's,
+        # or junk) is reported but does not hide the good frame the camera just delivered.
+        if newest is not None:
+            out.append(self._convert(*newest))
         return out
+
+    def _convert(self, wire, arrival: float, arrival_wall: float) -> DepthFrame | DepthFault:
+        """Our vehicle's newest frame as the policy's depth, or why it cannot be used."""
+        problem = self.timing.check(wire.stamp_us, arrival_wall)
+        if problem is not None:
+            return DepthFault(f"{problem} (seq {wire.seq}, {self.name})", arrival)
+        try:
+            depth = self.converter.convert(wire.depth_m, wire.hfov_deg)
+        except DepthBlindedError as err:
+            return DepthFault(f"{err} ({self.name})", arrival)
+        except DepthFrameError as err:
+            return DepthFault(f"malformed depth frame: {err}", arrival)
+        return DepthFrame(depth, arrival, wire.seq, wire.stamp_us)
 
     def close(self) -> None:
         if self.sock is not None:

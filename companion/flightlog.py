@@ -83,9 +83,12 @@ class RotatingTextFile:
         self._size += len(text.encode("utf-8")) if not text.isascii() else len(text)
         if self._size >= self.max_bytes and text.endswith("\n"):
             self._file.close()
-            rotate_files(self.path, self.keep)
+            try:
+                rotate_files(self.path, self.keep)
+            except OSError:
+                pass  # cannot rename (read-only, full): keep appending to the same file rather than go silent
             self._file = open(self.path, "a", encoding="utf-8")  # noqa: SIM115
-            self._size = 0
+            self._size = self._file.tell()
             self.rotations += 1
         return written
 

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import hashlib
 import hmac
+import math
 import os
 import socket
 import time
@@ -174,13 +175,19 @@ class UdpEndpoint:
         self.fd = self.sock.fileno()
         self.mav = new_parser(self, source_system, source_component)
         self.locked_address: tuple[str, int] | None = None
+        #: After this long without a datagram from the locked address, datagrams from other addresses
+        #: are parsed again (tagged ``_relock_candidate``) so the link can follow an autopilot or router
+        #: that restarted on a new source port; None: never (the lock is for life).
+        self.relock_after_s: float | None = None
+        self.last_locked_rx_s = -math.inf  # monotonic time of the last datagram from the locked address
         self.dropped_foreign = 0  # datagrams from addresses other than the locked autopilot
         self.bad_datagrams = 0  # datagrams the parser could not take apart at all
         self._ready: list = []  # messages of the last datagram not yet handed out
 
     def lock(self, address: tuple[str, int]) -> None:
-        """Talk to the autopilot at ``address`` only, for the life of the endpoint."""
+        """Talk to the autopilot at ``address`` only (until it falls silent and re-locks, see ``relock_after_s``)."""
         self.locked_address = address
+        self.last_locked_rx_s = time.monotonic()
         if self.scheme == "udpin":
             self.peer = address
 
@@ -204,12 +211,20 @@ class UdpEndpoint:
                 return None
             except ConnectionRefusedError:
                 continue  # an earlier send hit a closed port: not about this read
-            if self.locked_address is not None and address != self.locked_address:
-                self.dropped_foreign += 1
-                continue
+            candidate = False
+            if self.locked_address is not None:
+                now_s = time.monotonic()
+                if address == self.locked_address:
+                    self.last_locked_rx_s = now_s
+                elif self.relock_after_s is not None and now_s - self.last_locked_rx_s > self.relock_after_s:
+                    candidate = True  # the autopilot has been silent: it may be talking from a new port
+                else:
+                    self.dropped_foreign += 1
+                    continue
             messages = self.parse_datagram(data)
             for msg in messages:
                 msg._source_addr = address
+                msg._relock_candidate = candidate
             if messages:
                 self._ready = messages
                 return self._ready.pop(0)

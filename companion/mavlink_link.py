@@ -269,7 +269,7 @@ class PendingCommand:
 class LinkEvent:
     """Something the control loop must know about: a goal, a refused message, an autopilot text."""
 
-    kind: str  # "goal", "refused_unsigned", "statustext", "odometry_frame", "io_error", "ignored_traffic"
+    kind: str  # "goal", "refused_unsigned", "statustext", "odometry_frame", "io_error", "ignored_traffic", "relocked"
     detail: dict = field(default_factory=dict)
 
 
@@ -284,8 +284,11 @@ class AutopilotLink:
     """
 
     def __init__(self, connection: str, *, signing_key: bytes | None = None,
-                 command_timeout_s: float = 1.0, command_attempts: int = 3) -> None:
+                 command_timeout_s: float = 1.0, command_attempts: int = 3,
+                 relock_after_s: float | None = None) -> None:
         self.connection = normalize_connection(connection)
+        self.relock_after_s = relock_after_s  # UDP: follow the autopilot to a new port after this much silence
+        self.relocks: list[tuple[tuple[str, int], tuple[str, int]]] = []  # (old, new) addresses, for events
         self.signing_key = signing_key
         self.command_timeout_s = command_timeout_s
         self.command_attempts = command_attempts
@@ -321,6 +324,7 @@ class AutopilotLink:
             if scheme in ("udpin", "udpout"):
                 host, _, port = rest.rpartition(":")
                 self.conn = UdpEndpoint(scheme, host, int(port), 1, MAV_COMP_ID_ONBOARD_COMPUTER)
+                self.conn.relock_after_s = self.relock_after_s
             else:
                 self.conn = mavutil.mavlink_connection(self.connection, source_system=1,
                                                        source_component=MAV_COMP_ID_ONBOARD_COMPUTER,
@@ -435,6 +439,9 @@ class AutopilotLink:
                 and msg.get_link_id() != self._autopilot_link_id)
 
     def _handle(self, msg, now_s: float, events: list[LinkEvent]) -> None:
+        if getattr(msg, "_relock_candidate", False):
+            self._consider_relock(msg, now_s, events)
+            return
         kind = msg.get_type()
         if kind == "BAD_DATA":
             return
@@ -484,6 +491,27 @@ class AutopilotLink:
             self.conn.mav.srcSystem = src[0]  # components of one vehicle share its system id
             self._lock_onto(msg)
         self.heartbeat = Heartbeat(src[0], src[1], kind, msg.custom_mode, msg.base_mode, msg.system_status, now_s)
+
+    def _consider_relock(self, msg, now_s: float, events: list[LinkEvent]) -> None:
+        """Follow the autopilot to a new address after it fell silent (an autopilot, router or MAVProxy
+        restarted on a new source port): only on a HEARTBEAT from the same system, component and
+        autopilot kind and, with signing, signed on the autopilot's own link id (so a replay captured
+        on another link cannot take the lock). Anything else from a new address is ignored."""
+        hb = self.heartbeat
+        if (msg.get_type() != "HEARTBEAT" or hb is None
+                or (msg.get_srcSystem(), msg.get_srcComponent()) != (hb.sysid, hb.compid)
+                or AutopilotKind.from_heartbeat(msg.autopilot) is not hb.kind
+                or msg.type in (mavlink.MAV_TYPE_GCS, mavlink.MAV_TYPE_ONBOARD_CONTROLLER)):
+            return
+        if self.signing_key is not None and not (msg.get_signed() and msg.get_link_id() == self._autopilot_link_id):
+            return
+        old = self.conn.locked_address
+        self.conn.lock(msg._source_addr)
+        self.relocks.append((old, msg._source_addr))
+        events.append(LinkEvent("relocked", {
+            "reason": f"the autopilot (system {hb.sysid}) fell silent at {old[0]}:{old[1]} and now talks from "
+                      f"{msg._source_addr[0]}:{msg._source_addr[1]}: following it there"}))
+        self._on_heartbeat(msg, now_s)
 
     def _lock_onto(self, msg) -> None:
         """Remember the autopilot's address (UDP) and signing link id: the only ones accepted from now on."""
@@ -538,6 +566,12 @@ class AutopilotLink:
         pending = PendingCommand(command, padded, label or COMMAND_NAMES.get(command, f"command {command}"))
         self._commands.append(pending)
         return pending
+
+    def cancel_commands(self) -> None:
+        """Forget every queued command: after a pilot's takeover nothing we asked for may be re-sent."""
+        for pending in self._commands:
+            pending.failure = pending.failure or f"{pending.label}: cancelled"
+        self._commands.clear()
 
     def service_commands(self, now_s: float) -> None:
         """(Re)send the command at the head of the queue; give it up after the last attempt."""

@@ -113,7 +113,10 @@ class FlightRecorder:
 
     def close(self) -> None:
         if not self._file.closed:
-            self._file.close()
+            try:
+                self._file.close()
+            except OSError:
+                pass  # the last records could not be flushed (disk full): what is on disk stays readable
 
 
 def read_recording(path: str | Path) -> tuple[dict, np.ndarray]:

@@ -65,7 +65,12 @@ from companion.observation import DepthFrameStack, build_state
 from companion.policy import LoadedPolicy
 from companion.recording import FlightRecorder
 from companion.sdnotify import SystemdNotifier
-from companion.spec import goal_problem
+from companion.spec import STATE_DIM, goal_problem
+
+
+#: Below this much time before an inference's deadline, no call is started (its answer could not
+#: arrive in time); the step holds instead.
+MIN_INFERENCE_TIME_S = 0.001
 
 
 class ExitCode(IntEnum):
@@ -217,11 +222,31 @@ class InferenceWorker:
         self.discarded: list[float] = []  # durations (s) of late answers thrown away, for the log
         self._thread = threading.Thread(target=self._run, name="policy-inference", daemon=True)
 
+    #: Calls on a blank observation in the worker thread before the first real one: TorchScript's
+    #: profiling executor optimises per thread on the first calls (~20 ms instead of ~1.3 ms on the
+    #: bundled policy here), which would otherwise make the first engaged step late.
+    WARMUP_CALLS = 3
+
     def start(self) -> None:
+        """Start the thread and return once it has warmed the policy up."""
         import torch  # noqa: PLC0415 - the policy's runtime is already loaded
 
         self._threads = torch.get_num_threads()  # the CLI's choice (1), applied in the worker too
+        self._warm = threading.Event()
         self._thread.start()
+        self._warm.wait(timeout=60.0)
+
+    def _warm_up(self) -> None:
+        camera = self.policy.camera
+        depth = np.full((1, camera.frames, camera.height, camera.width), camera.max_range_m, np.float32)
+        state = np.zeros((1, STATE_DIM), np.float32)
+        state[0, 0] = 10.0  # a goal ahead
+        for _ in range(self.WARMUP_CALLS):
+            try:
+                self.policy.act(depth, state)
+            except Exception:  # noqa: BLE001 - a failing policy is reported by the first real call
+                break
+        self._warm.set()
 
     def submit(self, depth: np.ndarray, state: np.ndarray) -> int:
         """Start inference on a copy of the observation; return the job id."""
@@ -247,6 +272,7 @@ class InferenceWorker:
         import torch  # noqa: PLC0415
 
         torch.set_num_threads(self._threads)
+        self._warm_up()
         while True:
             with self._cv:
                 while self._job is None and not self._stop:
@@ -435,6 +461,8 @@ class Companion:
                 self._request_fallback_streams()
             elif event.kind == "io_error":
                 self._event("link", f"link I/O error: {event.detail['error']}", level="warning")
+            elif event.kind == "relocked":  # the autopilot restarted on a new UDP port
+                self._event("link", event.detail["reason"], level="warning", relocked=True)
             elif event.kind == "ignored_traffic":  # another sender or link id posing as the autopilot
                 self._event("ignored_traffic", event.detail["reason"], level="warning", count=event.detail["count"])
         req = self._odometry_request
@@ -567,10 +595,14 @@ class Companion:
             extra=extra,
         )
         if self.recorder is not None and frame is not None and info.get("state") is not None:
-            self.recorder.write(t_wall_s=time.time(), t_mono_s=now, step=self.step_index, frame_seq=frame.seq,
-                                hold=bool(hold), depth_m=frame.depth_m, state=info["state"],
-                                action=command if command is not None else np.zeros(3),
-                                pos_ned_m=odom.pos_ned, yaw_rad=odom.yaw_rad)
+            try:
+                self.recorder.write(t_wall_s=time.time(), t_mono_s=now, step=self.step_index, frame_seq=frame.seq,
+                                    hold=bool(hold), depth_m=frame.depth_m, state=info["state"],
+                                    action=command if command is not None else np.zeros(3),
+                                    pos_ned_m=odom.pos_ned, yaw_rad=odom.yaw_rad)
+            except (OSError, ValueError) as err:  # a full disk or a pulled SD card must not end the flight
+                self.recorder = None
+                self._event("recording", f"recording stopped: {err}; the flight goes on", level="warning")
         self.notifier.watchdog(now)
         if now - self._last_summary_s >= 10.0:
             self._write_summary(final=False)
@@ -722,7 +754,13 @@ class Companion:
         if self._command_failed(now):
             return self._hold_if_streaming()
         hb = self.link.heartbeat
-        if hb.in_companion_mode and self._pending is not None and self._pending.done:
+        if hb.in_companion_mode:
+            # The autopilot is there, answered or not: engaged from now on, so leaving the mode is a
+            # takeover, and an unanswered request must not be retried later (it would take the vehicle
+            # back from a pilot who switched away in between).
+            if self._pending is not None and not self._pending.done:
+                self.link.cancel_commands()
+            self._pending = None
             self.engaged = True
             self._was_in_companion_mode_at_start = True
             self._next_in_sequence(now, f"autopilot in {hb.mode}")
@@ -782,8 +820,12 @@ class Companion:
         deadline_s = min(frame.arrival_s + self.stale_s, now + self.period_s)
         busy_since = self.worker.busy_since_s
         if busy_since is not None:  # a late call is still running: it cannot take a new observation
-            info["hold"] = (f"policy inference late (still running after {(now - busy_since) * 1000:.0f} ms > "
-                            f"{self.stale_s * 1000:.0f} ms deadline)")
+            info["hold"] = (f"policy inference late (a call abandoned at its deadline is still running after "
+                            f"{(now - busy_since) * 1000:.0f} ms)")
+            return self._hold(info)
+        if deadline_s - now < MIN_INFERENCE_TIME_S:  # no time left to act on this frame: do not start a call
+            info["hold"] = (f"policy inference late (no time left: the frame is {(now - frame.arrival_s) * 1000:.0f} ms "
+                            f"old, stale at {self.stale_s * 1000:.0f} ms)")
             return self._hold(info)
         info["frame"] = frame
         # After a gap in depth, start the stack afresh (as at an episode start) rather than
@@ -897,6 +939,7 @@ class Companion:
         self.engaged = False
         self.taken_over = True
         self._sequence, self._pending = [], None
+        self.link.cancel_commands()  # no queued arm/mode/takeoff request may go out after this
         self._set_phase(FlightPhase.HANDED_BACK, why, level="warning")
 
     def _watch_link_after_takeover(self, now: float) -> None:

@@ -31,10 +31,11 @@ STATE_DIM = len(STATE_NAMES)
 CONTROL_PERIOD_MIN_S = 0.02
 CONTROL_PERIOD_MAX_S = 1.0
 
-#: ``--link-timeout`` range (s): autopilots send HEARTBEAT at 1 Hz, so less than 1 s declares a
-#: healthy link lost; more than 10 s leaves a dead link undetected while the vehicle flies on
-#: its last setpoint stream's failsafe (``inf`` would disable link-loss detection).
-LINK_TIMEOUT_MIN_S = 1.0
+#: ``--link-timeout`` range (s): autopilots send HEARTBEAT at 1 Hz, so anything under 1.5 heartbeat
+#: periods declares a healthy link lost on ordinary jitter (and a lost link ends an engaged flight
+#: for good); more than 10 s leaves a dead link undetected while the vehicle flies on its last
+#: setpoint stream's failsafe (``inf`` would disable link-loss detection).
+LINK_TIMEOUT_MIN_S = 1.5
 LINK_TIMEOUT_MAX_S = 10.0
 #: Longest ``--heartbeat-timeout`` (s) for the first heartbeat at start-up (an autopilot boots in
 #: well under a minute; a systemd unit should fail and restart rather than wait for ever).

@@ -248,6 +248,43 @@ def test_foreign_senders_are_never_sent_to_and_never_heard():
             s.close()
 
 
+def test_the_link_follows_an_autopilot_that_restarts_on_a_new_port_only_after_silence():
+    """A router or autopilot restarted on a new source port is heard again once the old one has been
+    silent for the re-lock time; while the old one talks, the same heartbeat from a new port is dropped."""
+    port = free_udp_ports(1)[0]
+    link = AutopilotLink(f"udpin:127.0.0.1:{port}", relock_after_s=0.5)
+    link.open()
+    old = _autopilot(port)
+    new = None
+    try:
+        _heartbeat(old)
+        link.wait_for_autopilot(3.0)
+        first = link.conn.locked_address
+        new = _autopilot(port)  # the same system and component, from another port
+        _heartbeat(old)
+        _heartbeat(new, custom_mode=PX4_POSCTL)
+        _pump(link, lambda: _dropped(link)[0] >= 1, 1.0)
+        assert link.conn.locked_address == first and link.heartbeat.custom_mode == PX4_OFFBOARD
+        time.sleep(0.7)  # the old port falls silent past the re-lock time
+        events: list = []
+        _heartbeat(new, custom_mode=PX4_POSCTL)
+        assert _pump(link, lambda: link.conn.locked_address != first, 1.0, events)
+        assert link.heartbeat.custom_mode == PX4_POSCTL
+        assert [e.kind for e in events if e.kind == "relocked"] == ["relocked"]
+        for _ in range(3):
+            link.send_heartbeat()
+        assert _drain_wait(new), "the new port gets our traffic"
+        _heartbeat(old, custom_mode=PX4_OFFBOARD)  # the old port again: now a stranger
+        dropped = _dropped(link)[0]
+        _pump(link, lambda: _dropped(link)[0] > dropped, 1.0)
+        assert link.heartbeat.custom_mode == PX4_POSCTL
+    finally:
+        link.close()
+        old.close()
+        if new is not None:
+            new.close()
+
+
 def _drain_wait(ap: MavlinkUdpEndpoint) -> list:
     select.select([ap.sock], [], [], 0.2)
     time.sleep(0.05)

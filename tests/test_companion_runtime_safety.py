@@ -136,6 +136,21 @@ def test_replayed_reordered_and_foreign_frames_are_faults(sender):
     assert f"sitl:127.0.0.1:{sender.port}" in blind.reason
 
 
+def test_a_stray_datagram_after_our_frame_does_not_hide_it(sender):
+    """Our camera's frame, then another vehicle's frame and junk in the same read: the fault is
+    reported, and our frame (the newest of ours) still comes out last, so the policy flies on it."""
+    assert isinstance(sender.send(stamp_us=_now_us()), DepthFrame)  # locks to vehicle 0
+    for vehicle, payload in ((0, None), (3, None), (0, b"junk")):
+        sender.seq += 1
+        data = payload or encode_frame(np.full((32, 32), 7.0, np.float32), vehicle=vehicle, seq=sender.seq,
+                                       stamp_us=_now_us(), hfov_deg=90.0, max_range_m=20.0)
+        sender.tx.sendto(data, ("127.0.0.1", sender.port))
+    time.sleep(0.2)  # all three wait in the socket: one poll reads them together
+    items = sender.source.poll(time.monotonic())
+    assert [type(i).__name__ for i in items] == ["DepthFault", "DepthFault", "DepthFrame"], items
+    assert items[0].reason.startswith("depth frame from vehicle 3") and items[1].reason.startswith("malformed")
+
+
 def test_a_frame_delayed_in_transit_is_stale_without_synchronized_clocks(sender):
     skew_us = -3_600_000_000  # the sender's clock is an hour behind ours: only differences matter
     for _ in range(5):
@@ -361,8 +376,9 @@ def _start_takeover(rig: Rig, tmp) -> None:
 
 def _start_landed(rig: Rig, tmp) -> None:
     rig.start_vehicle("--airborne", "--start", "0,0,-3")
+    # The recording goes to /dev/full: every flush fails (ENOSPC), as on a full SD card in flight.
     rig.start_companion(make_policy(tmp / "policy.pt"), "--goal", "3,0,-3", "--arm", "--takeoff", "3",
-                        "--land-on-arrival", "--timeout", "150")
+                        "--land-on-arrival", "--timeout", "150", "--record", "/dev/full")
 
 
 def _start_blind(rig: Rig, tmp) -> None:
@@ -459,7 +475,8 @@ def test_a_takeover_survives_a_link_outage(rigs):
 
 @scenario("landed")
 def test_a_landed_flight_stays_over_after_a_link_outage(rigs):
-    """A link blip after landing must not start a second flight (--arm): the companion stays landed, sends nothing."""
+    """A link blip after landing must not start a second flight (--arm): the companion stays landed, sends nothing.
+    And a recording that fails in flight (a full disk) stops the recording, not the flight."""
     rig = rigs["landed"]
     landed = rig.wait_for_event(lambda r: r.get("event") == "phase" and r.get("to") == "landed", 90.0, "landed")
     gcs = GroundStation(rig.gcs_port)
@@ -478,6 +495,9 @@ def test_a_landed_flight_stays_over_after_a_link_outage(rigs):
     assert after and not any(r["sent"] for r in after)
     rearmed = [r for r in rig.vehicle_records() if r["event"] == "armed" and r["t"] > landed["t"]]
     assert rearmed == []
+    # The full disk stopped the recording, not the flight (which landed above).
+    stopped = [r for r in rig.companion_records() if r.get("event") == "recording"]
+    assert len(stopped) == 1 and "recording stopped" in stopped[0]["message"], stopped
 
 
 def _first_hold(rig: Rig, t_fault: float, reason: str) -> dict:
