@@ -17,7 +17,9 @@ filters, a 50-d feature, two 1024-unit layers) unless ``--policy`` names another
 The last line of output is one JSON object. Targets (10 Hz): inference p99 <= 2 ms,
 frame-to-setpoint p99 <= 15 ms, jitter p99 <= 2 ms.
 
-Usage: ``python benchmarks/companion_latency.py [--seconds 30] [--warmup 5] [--camera-hz 30] [--policy PATH]``
+Usage: ``python benchmarks/companion_latency.py [--seconds 30] [--warmup 5] [--camera-hz 30] [--policy PATH] [--smoke]``
+(``--smoke``: a 3 s flight after 1 s of warm-up and 200 isolated inference calls; what CI runs
+to keep the script working.)
 """
 
 from __future__ import annotations
@@ -39,9 +41,12 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 TARGETS = {"inference_ms_p99": 2.0, "frame_to_setpoint_ms_p99": 15.0, "period_jitter_ms_p99": 2.0}
+#: --smoke: measured flight, warm-up (s) and isolated inference calls.
+SMOKE_SECONDS, SMOKE_WARMUP_S, SMOKE_CALLS = 3.0, 1.0, 200
 
 
 def isolated_inference_ms(policy_path: Path, calls: int = 2000) -> dict:
+    """Percentiles (ms) of ``calls`` back-to-back policy calls in this process, one torch thread."""
     import torch
 
     from companion.flightlog import percentiles_ms
@@ -63,6 +68,7 @@ def isolated_inference_ms(policy_path: Path, calls: int = 2000) -> dict:
 
 
 def free_ports(count: int) -> list[int]:
+    """``count`` UDP ports free on 127.0.0.1 right now."""
     socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(count)]
     for s in socks:
         s.bind(("127.0.0.1", 0))
@@ -115,6 +121,7 @@ def fly(policy_path: Path, workdir: Path, seconds: float, warmup: float, camera_
 
 
 def summarize(records: list[dict], warmup: float, period_ms: float) -> dict:
+    """Latency, jitter, inference and memory figures of the policy steps after ``warmup`` seconds of flight."""
     steps = [r for r in records if r["kind"] == "step" and r["phase"] == "flying_to_goal"]
     start = steps[0]["mono"] + warmup
     window = [r for r in steps if r["mono"] >= start]
@@ -139,8 +146,8 @@ def summarize(records: list[dict], warmup: float, period_ms: float) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--seconds", type=float, default=30.0, help="measured flight time (default 30)")
-    parser.add_argument("--warmup", type=float, default=5.0, help="flight time ignored at the start (default 5)")
+    parser.add_argument("--seconds", type=float, default=None, help="measured flight time (default 30)")
+    parser.add_argument("--warmup", type=float, default=None, help="flight time ignored at the start (default 5)")
     parser.add_argument("--camera-hz", type=float, default=30.0, help="simulated camera rate (default 30)")
     parser.add_argument("--policy", type=Path, default=REPO / "models" / "policy.pt",
                         help="policy file (default: the bundled models/policy.pt)")
@@ -148,7 +155,16 @@ def main() -> None:
                         help="run the companion (as CPUSchedulingPolicy=fifo would) and the simulated vehicle, which "
                              "stands in for the camera hardware, under SCHED_FIFO priority 20 (chrt)")
     parser.add_argument("--keep", type=Path, help="keep the logs in this folder")
+    parser.add_argument("--smoke", action="store_true",
+                        help=f"CI check: a {SMOKE_SECONDS:g} s flight after {SMOKE_WARMUP_S:g} s of warm-up, "
+                             f"{SMOKE_CALLS} isolated inference calls")
     args = parser.parse_args()
+    if args.seconds is None:
+        args.seconds = SMOKE_SECONDS if args.smoke else 30.0
+    if args.warmup is None:
+        args.warmup = SMOKE_WARMUP_S if args.smoke else 5.0
+    if not (args.seconds > 0 and args.warmup >= 0 and args.camera_hz > 0):
+        parser.error("--seconds and --camera-hz must be > 0 and --warmup >= 0")
 
     with tempfile.TemporaryDirectory(prefix="companion-latency-") as tmp:
         workdir = args.keep or Path(tmp)
@@ -156,7 +172,7 @@ def main() -> None:
         policy_path = args.policy
         if not policy_path.is_file():
             raise SystemExit(f"error: no policy file {policy_path}")
-        isolated = isolated_inference_ms(policy_path)
+        isolated = isolated_inference_ms(policy_path, SMOKE_CALLS if args.smoke else 2000)
         records = fly(policy_path, workdir, args.seconds, args.warmup, args.camera_hz, args.realtime)
     from companion.policy import load_policy
 

@@ -10,7 +10,9 @@ N = 8, 32 and 64 UAVs per world. It prints a table and, as its last line, one JS
 * per N: agent-steps per second (one UAV advanced by one 0.1 s control period, with its
   new depth frame and reward) for a single world and for the batch.
 
-Usage: ``python benchmarks/sim_throughput.py [--seconds 3] [--worlds 64]``
+Usage: ``python benchmarks/sim_throughput.py [--seconds 3] [--worlds 64] [--smoke]``
+(``--smoke``: N = 8 only, 4 batched worlds, 0.2 s per configuration; what CI runs to keep the
+script working.)
 """
 
 from __future__ import annotations
@@ -18,10 +20,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
+from pathlib import Path
 
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
-
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from sitl.eval.baselines import straight_to_goal  # noqa: E402
 from sitl.sim.config import SimConfig  # noqa: E402
@@ -55,19 +59,26 @@ def measure(num_uavs: int, num_worlds: int, seconds: float) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--seconds", type=float, default=3.0, help="measuring time per configuration")
-    parser.add_argument("--worlds", type=int, default=64, help="worlds in the batched measurement")
+    parser.add_argument("--seconds", type=float, default=None, help="measuring time per configuration (default 3)")
+    parser.add_argument("--worlds", type=int, default=None, help="worlds in the batched measurement (default 64)")
+    parser.add_argument("--smoke", action="store_true",
+                        help="CI check: N = 8 only, 4 batched worlds, 0.2 s per configuration")
     args = parser.parse_args()
+    seconds = args.seconds if args.seconds is not None else (0.2 if args.smoke else 3.0)
+    batched_worlds = args.worlds if args.worlds is not None else (4 if args.smoke else 64)
+    if seconds <= 0 or batched_worlds < 1:
+        parser.error(f"--seconds must be > 0 and --worlds >= 1, got {seconds} and {batched_worlds}")
+    swarm_sizes = (8,) if args.smoke else (8, 32, 64)
 
     results = []
-    for n in (8, 32, 64):
-        for worlds in (1, max(1, args.worlds * 8 // n)):
-            r = measure(n, worlds, args.seconds)
+    for n in swarm_sizes:
+        for worlds in (1, max(1, batched_worlds * 8 // n)):
+            r = measure(n, worlds, seconds)
             results.append(r)
             print(f"N={n:3d} worlds={worlds:3d}: {r['ms_per_step']:7.3f} ms/step  "
                   f"real-time x{r['realtime_factor']:8.1f}  {r['agent_steps_per_s']:9.0f} agent-steps/s", flush=True)
     single8 = next(r for r in results if r["uavs"] == 8 and r["worlds"] == 1)
-    batch8 = next(r for r in results if r["uavs"] == 8 and r["worlds"] > 1)
+    batch8 = next((r for r in results if r["uavs"] == 8 and r["worlds"] > 1), single8)  # --worlds 1: no batch
     summary = {
         "benchmark": "sim_throughput",
         "camera": "32x32 planar depth, 90 deg hfov, 4x4 min-pooled sub-rays",

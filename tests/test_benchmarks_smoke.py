@@ -1,0 +1,58 @@
+"""Every benchmark script's ``--smoke`` run, as CI runs it: exit 0 and a JSON object as the last line.
+
+Project rule: performance is measured with scripts under ``benchmarks/`` that print a JSON
+summary as their last line, each with a smoke mode CI runs. The scripts are discovered, so a
+new one is covered (or flagged, when it has no ``--smoke``) without editing this file.
+``fuzz_companion.py`` and ``depth_preprocess.py`` check their own results in their own tests
+(test_fuzz_smoke.py, test_depth_preprocess.py) and are not run twice here.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from tests.companion_helpers import REPO, env
+
+BENCHMARKS = REPO / "benchmarks"
+#: Scripts whose smoke run has its own test with stronger assertions.
+OWN_TESTS = {"fuzz_companion.py": "test_fuzz_smoke.py", "depth_preprocess.py": "test_depth_preprocess.py"}
+#: Seconds one smoke run may take (they take 2-15 s on a busy 2-core machine; imports dominate).
+SMOKE_TIMEOUT_S = 120
+
+
+def _is_script(source: str) -> bool:
+    """A runnable benchmark, not a helper module (fuzz_inputs.py) the scripts import."""
+    return 'if __name__ == "__main__":' in source
+
+
+def _has_smoke(source: str) -> bool:
+    return 'add_argument("--smoke"' in source
+
+
+SCRIPTS = sorted(p.name for p in BENCHMARKS.glob("*.py") if _is_script(p.read_text()))
+SMOKE_SCRIPTS = [name for name in SCRIPTS if _has_smoke((BENCHMARKS / name).read_text()) and name not in OWN_TESTS]
+
+
+def test_every_benchmark_script_has_a_smoke_mode():
+    missing = [name for name in SCRIPTS if not _has_smoke((BENCHMARKS / name).read_text())]
+    assert not missing, f"benchmark scripts without --smoke (CI cannot run them): {missing}"
+    assert all((REPO / "tests" / test).is_file() for test in OWN_TESTS.values())
+    assert len(SMOKE_SCRIPTS) >= 5, SMOKE_SCRIPTS  # discovery still finds the five this file was written for
+
+
+@pytest.mark.parametrize("script", SMOKE_SCRIPTS)
+def test_smoke_run_prints_a_json_summary_last(script: str):
+    proc = subprocess.run([sys.executable, str(BENCHMARKS / script), "--smoke"], cwd=REPO, env=env(),
+                          capture_output=True, text=True, timeout=SMOKE_TIMEOUT_S)
+    assert proc.returncode == 0, f"{script} --smoke exited {proc.returncode}:\n{proc.stderr[-3000:]}"
+    lines = proc.stdout.strip().splitlines()
+    assert lines, f"{script} --smoke printed nothing; stderr:\n{proc.stderr[-3000:]}"
+    try:
+        summary = json.loads(lines[-1])
+    except json.JSONDecodeError as exc:
+        raise AssertionError(f"{script} --smoke: last line is not JSON ({exc}): {lines[-1]!r}") from None
+    assert isinstance(summary, dict) and summary, f"{script} --smoke: last line is not a JSON object: {lines[-1]!r}"
