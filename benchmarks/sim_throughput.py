@@ -27,7 +27,7 @@ from pathlib import Path
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from sitl.eval.baselines import straight_to_goal  # noqa: E402
+from sitl.sim.baselines import straight_to_goal  # noqa: E402
 from sitl.sim.config import SimConfig  # noqa: E402
 from sitl.sim.env import SwarmEnv  # noqa: E402
 

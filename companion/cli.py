@@ -30,6 +30,7 @@ from companion.spec import (
     HEARTBEAT_TIMEOUT_MAX_S,
     LINK_TIMEOUT_MAX_S,
     LINK_TIMEOUT_MIN_S,
+    MAX_INVALID_DEPTH_FRACTION,
     STATE_NAMES,
     goal_problem,
 )
@@ -177,6 +178,11 @@ def build_parser() -> argparse.ArgumentParser:
     flight.add_argument("--exit-on-arrival", action="store_true",
                         help="exit 0 once arrived (and landed with --land-on-arrival), non-zero on any failure")
     flight.add_argument("--timeout", type=_positive("--timeout"), metavar="S", help="exit 7 if not arrived within S seconds")
+    flight.add_argument("--max-invalid-depth", type=_positive("--max-invalid-depth", 1.0),
+                        default=MAX_INVALID_DEPTH_FRACTION, metavar="FRACTION",
+                        help="hold when more than this fraction of a depth frame's pixels are invalid (0, negative, "
+                             f"NaN): a covered, dazzled or dead camera (default {MAX_INVALID_DEPTH_FRACTION:g}; check "
+                             "your camera's open-sky fraction in a recording first; 1 turns the check off)")
     flight.add_argument("--no-camera-sync", action="store_true",
                         help="do not phase-lock the control ticks to depth frame arrivals")
     output = parser.add_argument_group("output")
@@ -275,7 +281,7 @@ def _fly(args: argparse.Namespace, log) -> int:
     from companion.depth_sources import DepthSourceError, open_depth_source
 
     try:
-        depth = open_depth_source(args.camera, policy.camera)
+        depth = open_depth_source(args.camera, policy.camera, args.max_invalid_depth)
         depth.start()
     except DepthSourceError as err:
         return fail(ExitCode.CAMERA, f"cannot start the camera: {err}")

@@ -47,7 +47,7 @@ from companion.observation import (
     min_pool_depth,
     validate_depth_frame,
 )
-from companion.spec import CameraSpec
+from companion.spec import MAX_INVALID_DEPTH_FRACTION, CameraSpec
 
 _SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux value; Python does not export it
 
@@ -81,8 +81,9 @@ class DepthConverter:
         camera: the policy's camera (from its metadata).
     """
 
-    def __init__(self, camera: CameraSpec) -> None:
+    def __init__(self, camera: CameraSpec, max_invalid_fraction: float = MAX_INVALID_DEPTH_FRACTION) -> None:
         self.camera = camera
+        self.max_invalid_fraction = max_invalid_fraction  # above it a frame is a blinded sensor (spec.py)
 
     def convert(self, depth_m: np.ndarray, source_hfov_deg: float) -> np.ndarray:
         """Return float32 [H, W] for the policy; raise :class:`DepthFrameError` if impossible."""
@@ -92,13 +93,13 @@ class DepthConverter:
         if not np.issubdtype(raw.dtype, np.floating):
             raise DepthFrameError(f"depth frame must be floating-point metres, got dtype {raw.dtype}")
         # Counted on the raw pixels: pooling would turn a covered lens (all 0) into "all clear".
-        check_not_blinded(raw)
+        check_not_blinded(raw, self.max_invalid_fraction)
         cam = self.camera
         if raw.shape == (cam.height, cam.width) and abs(source_hfov_deg - cam.hfov_deg) < 1e-3:
-            return validate_depth_frame(raw, cam)
+            return validate_depth_frame(raw, cam, self.max_invalid_fraction)
         cropped = crop_to_hfov(raw, source_hfov_deg, cam)
         pooled = min_pool_depth(cropped, cam.height, cam.width, cam.max_range_m)
-        return validate_depth_frame(pooled, cam)
+        return validate_depth_frame(pooled, cam, self.max_invalid_fraction)
 
 
 def z16_to_metres(z16: np.ndarray, depth_scale_m: float) -> np.ndarray:
@@ -516,13 +517,20 @@ def parse_camera_spec(text: str) -> tuple[str, dict]:
     raise ValueError(f"invalid camera {text!r}: use one of {CAMERA_FORMS}")
 
 
-def open_depth_source(text: str, camera: CameraSpec) -> DepthSource:
-    """Build (not start) the source named by a ``--camera`` value for a policy's ``camera``."""
+def open_depth_source(text: str, camera: CameraSpec,
+                      max_invalid_fraction: float = MAX_INVALID_DEPTH_FRACTION) -> DepthSource:
+    """Build (not start) the source named by a ``--camera`` value for a policy's ``camera``.
+
+    ``max_invalid_fraction``: above this fraction of invalid pixels a frame is a blinded sensor.
+    """
     kind, options = parse_camera_spec(text)
     if kind == "sitl":
-        return SitlDepthSource(options["host"], options["port"], camera, vehicle=options["vehicle"])
-    if kind == "realsense":
-        return RealSenseDepthSource(camera, **options)
-    if not Path(options["path"]).is_file():
+        source = SitlDepthSource(options["host"], options["port"], camera, vehicle=options["vehicle"])
+    elif kind == "realsense":
+        source = RealSenseDepthSource(camera, **options)
+    elif not Path(options["path"]).is_file():
         raise DepthSourceError(f"cannot replay {options['path']}: no such file")
-    return ReplayDepthSource(options["path"], camera, loop=options["loop"])
+    else:
+        source = ReplayDepthSource(options["path"], camera, loop=options["loop"])
+    source.converter.max_invalid_fraction = max_invalid_fraction
+    return source

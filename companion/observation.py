@@ -187,7 +187,8 @@ def crop_to_hfov(depth_m: np.ndarray, source_hfov_deg: float, target: CameraSpec
     return depth_m[..., top : top + keep_h, left : left + keep_w]
 
 
-def validate_depth_frame(depth_m: np.ndarray, camera: CameraSpec) -> np.ndarray:
+def validate_depth_frame(depth_m: np.ndarray, camera: CameraSpec,
+                         max_invalid_fraction: float = MAX_INVALID_DEPTH_FRACTION) -> np.ndarray:
     """Check one frame [H, W] against the camera spec and return it as clean float32.
 
     Raises :class:`DepthFrameError` with a precise reason for a wrong shape or a wrong
@@ -200,7 +201,7 @@ def validate_depth_frame(depth_m: np.ndarray, camera: CameraSpec) -> np.ndarray:
         raise DepthFrameError(f"depth frame has shape {depth_m.shape}, expected ({camera.height}, {camera.width})")
     if not np.issubdtype(depth_m.dtype, np.floating):
         raise DepthFrameError(f"depth frame must be floating-point metres, got dtype {depth_m.dtype}")
-    check_not_blinded(depth_m)
+    check_not_blinded(depth_m, max_invalid_fraction)
     valid = np.isfinite(depth_m) & (depth_m > 0)
     return np.where(valid, np.minimum(depth_m, camera.max_range_m), camera.max_range_m).astype(np.float32)
 

@@ -145,7 +145,10 @@ class TaskSpec:
 
     collision_radius_m: float = 0.3  # R: an F450-class quadrotor with props (0.6 m tip to tip); UAVs collide within 2R
     arrival_radius_m: float = 0.5  # paper: arrival within 0.5 m of the goal
-    max_episode_steps: int = 400  # episode time limit in control periods (40 s at 10 Hz)
+    #: Episode time limit in control periods: 400 (40 s at 10 Hz) is the evaluation's (swarm_test, the
+    #: paper protocol). The trainer's own episodes may be shorter (the fast preset's 200); a policy
+    #: file's ``task`` records the limit it was trained with.
+    max_episode_steps: int = 400
 
     def to_dict(self) -> dict:
         return asdict(self)

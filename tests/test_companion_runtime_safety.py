@@ -25,7 +25,7 @@ from torch import nn
 from companion.depth_sources import DepthConverter, DepthFault, DepthFrame, FrameTiming, SitlDepthSource
 from companion.depth_wire import encode_frame
 from companion.flightlog import FlightLog, RotatingTextFile, RunningStats, percentiles_ms
-from companion.observation import DepthFrameError, validate_depth_frame
+from companion.observation import DepthBlindedError, DepthFrameError, validate_depth_frame
 from companion.policy import build_metadata, save_policy
 from companion.recording import FlightRecorder, read_recording
 from companion.spec import MAX_GOAL_DISTANCE_M, ActionSpec, CameraSpec, goal_problem
@@ -77,6 +77,19 @@ def test_open_sky_with_holes_still_flies():
     sky = _frame(8.0, 0.6, 0.0)  # the upper 60 % without stereo data, ground below: a normal view
     depth = DepthConverter(CameraSpec()).convert(sky, 90.0)
     assert np.all(depth[:19] == 20.0) and np.all(depth[20:] == 8.0)  # holes still read max range
+
+
+def test_the_blinded_limit_is_the_operators_choice(tmp_path):
+    """A camera whose open-sky view is 95 % holes (e.g. high above featureless ground) is blinded at the
+    default 90 % limit; --max-invalid-depth 0.97 lets it fly (checked through open_depth_source)."""
+    from companion.depth_sources import open_depth_source
+
+    mostly_sky = _frame(8.0, 0.95, 0.0)
+    with pytest.raises(DepthBlindedError):
+        DepthConverter(CameraSpec()).convert(mostly_sky, 90.0)
+    source = open_depth_source("sitl:127.0.0.1:14999", CameraSpec(), max_invalid_fraction=0.97)  # built, not started
+    depth = source.converter.convert(mostly_sky, 90.0)
+    assert np.all(depth[:30] == 20.0) and np.all(depth[31:] == 8.0)
 
 
 # =========================================================================== depth: stamps and vehicle (item 5)

@@ -76,7 +76,7 @@ def test_arrived_uav_hovers_near_goal_and_stays_visible():
     cfg = SimConfig(num_uavs=1, scenario=ScenarioConfig(name="circle", circle_radius_m=3.0, circle_jitter_m=0.0))
     env = SwarmEnv(cfg, seed=0)
     obs = env.reset()
-    from sitl.eval.baselines import straight_to_goal
+    from sitl.sim.baselines import straight_to_goal
     total = 0.0
     while not env.world_done.all():
         obs, r, term, trunc, info = env.step(straight_to_goal(obs.state))

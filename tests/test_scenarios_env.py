@@ -8,7 +8,7 @@ from itertools import combinations
 import numpy as np
 import pytest
 
-from sitl.eval.baselines import straight_to_goal
+from sitl.sim.baselines import straight_to_goal
 from sitl.sim.config import DENSITIES, ScenarioConfig, SimConfig, density_from_name
 from sitl.sim.env import SwarmEnv
 from sitl.sim.scenarios import random_box_size, sample_circle, sample_random

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from sitl.cli_args import positive_int
-from sitl.eval.baselines import straight_to_goal
+from sitl.sim.baselines import straight_to_goal
 from sitl.sim.config import CIRCLE_RADIUS_M, DENSITIES, SCENARIOS, ScenarioConfig, SimConfig, density_from_name
 from sitl.sim.dynamics import DYNAMICS_NAMES
 from sitl.sim.env import SwarmEnv

@@ -54,7 +54,7 @@ class Method:
     def make_actor(self, env: SwarmEnv) -> Actor:
         """This controller's :data:`~sitl.sim.episodes.Actor` for every UAV of ``env`` (an :data:`ActorFactory`)."""
         if self.kind == "baseline" and self.label == "straight":
-            from sitl.eval.baselines import straight_actor
+            from sitl.sim.baselines import straight_actor
 
             return straight_actor(env)
         if self.label == "orca" and self.kind == "baseline":

@@ -45,7 +45,7 @@ def make_vae_encoder(sim_config: SimConfig, seed: int, images: int, epochs: int,
         make_actor = depth_state_actor(load_policy(policy_path).act)
         log(f"collecting {images} depth images with {policy_path}")
     else:
-        from sitl.eval.baselines import straight_to_goal  # the reference controller (a leaf module)
+        from sitl.sim.baselines import straight_to_goal  # the reference controller (a leaf module)
 
         make_actor = depth_state_actor(lambda depth, state: straight_to_goal(state))
         log(f"no --vae-policy given: collecting {images} depth images with the straight-to-goal reference")

@@ -42,15 +42,13 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.spec import DEFAULT_CAMERA_SPEC, DEFAULT_TASK_SPEC
+from companion.spec import DEFAULT_CAMERA_SPEC, DEFAULT_TASK_SPEC, TaskSpec
 from sitl.sim.metrics import OUTCOMES, UAVRecord
 from sitl.realtime.camera_feed import DEFAULT_CAMERA_HZ
 from sitl.realtime.depth_transport import DEPTH_BASE_PORT
 from sitl.realtime.udp_endpoint import GCS_PORT, PX4_ONBOARD_BASE_PORT, MavlinkUdpEndpoint, mavlink
 from sitl.sim.scenarios import ScenarioSample
 
-COLLISION_RADIUS_M = DEFAULT_TASK_SPEC.collision_radius_m  # R, as sitl.vehicle and the in-process simulator use
-ARRIVAL_RADIUS_M = DEFAULT_TASK_SPEC.arrival_radius_m
 START_MODES = ("ground", "airborne")
 
 
@@ -75,6 +73,7 @@ class MavlinkSettings:
     time_limit_s: float = 40.0  # after the goals are sent
     ready_timeout_s: float = 120.0  # start-up, arming and takeoff
     companion_threads: int = 1  # torch threads per companion: N of them share the machine
+    task: TaskSpec = DEFAULT_TASK_SPEC  # collision and arrival radii the outcomes are scored with (the in-process run's)
 
     def __post_init__(self) -> None:
         if self.start not in START_MODES:
@@ -295,7 +294,7 @@ def fly_episode(sample: ScenarioSample, episode: int, settings: MavlinkSettings,
                 gcs.send_goal(i, sample.goal_ned[i])
             time.sleep(0.05)
         status(f"episode {episode}: goals sent, flying")
-        trace = _follow_flight(groups, gcs, folder, sample, t0, settings.time_limit_s, names)
+        trace = _follow_flight(groups, gcs, folder, sample, t0, settings.time_limit_s, names, settings.task)
     except KeyboardInterrupt:
         status("interrupted: stopping every process")
         raise
@@ -305,7 +304,7 @@ def fly_episode(sample: ScenarioSample, episode: int, settings: MavlinkSettings,
         gcs.close()
     crashes = {int(r["vehicle"]): (float(r["t"]), str(r.get("outcome", "")))
                for r in JsonLinesTail(folder / "vehicle.jsonl").read() if r.get("event") == "crash"}
-    records = _records_from_trace(trace, crashes, sample, t0, episode, settings.time_limit_s)
+    records = _records_from_trace(trace, crashes, sample, t0, episode, settings.time_limit_s, settings.task)
     companions = [_companion_stats(folder / f"{name}.jsonl", groups, name) for name in names]
     world = {"cpu_fraction": groups.cpu_fraction("world"),
              "physics_overruns": sum(1 for r in JsonLinesTail(folder / "vehicle.jsonl").read()
@@ -369,7 +368,7 @@ def _wait_companions_ready(groups: ProcessGroup, gcs: GroundStationLink, folder:
 
 
 def _follow_flight(groups: ProcessGroup, gcs: GroundStationLink, folder: Path, sample: ScenarioSample, t0: float,
-                   time_limit_s: float, names: list[str]) -> list[dict]:
+                   time_limit_s: float, names: list[str], task: TaskSpec = DEFAULT_TASK_SPEC) -> list[dict]:
     """Watch the ground truth until every UAV has arrived or crashed, or the time limit."""
     tail = JsonLinesTail(folder / "trace.jsonl")
     trace: list[dict] = []
@@ -382,8 +381,8 @@ def _follow_flight(groups: ProcessGroup, gcs: GroundStationLink, folder: Path, s
             if record["t"] < t0:
                 continue
             pos = np.asarray(record["pos_ned"])
-            arrived = np.linalg.norm(pos - sample.goal_ned, axis=1) < ARRIVAL_RADIUS_M
-            done |= arrived | np.asarray(record["crashed"]) | (-pos[:, 2] < COLLISION_RADIUS_M)
+            arrived = np.linalg.norm(pos - sample.goal_ned, axis=1) < task.arrival_radius_m
+            done |= arrived | np.asarray(record["crashed"]) | (-pos[:, 2] < task.collision_radius_m)
         _check_alive(groups, folder)
         if done.all() or time.time() - t0 > time_limit_s + 0.2:
             return trace
@@ -391,7 +390,8 @@ def _follow_flight(groups: ProcessGroup, gcs: GroundStationLink, folder: Path, s
 
 
 def _records_from_trace(trace: list[dict], crashes: dict[int, tuple[float, str]], sample: ScenarioSample,
-                        t0: float, episode: int, time_limit_s: float) -> list[UAVRecord]:
+                        t0: float, episode: int, time_limit_s: float,
+                        task: TaskSpec = DEFAULT_TASK_SPEC) -> list[UAVRecord]:
     """Per-UAV outcomes and paths from the world's ground truth, with the in-process definitions.
 
     ``crashes`` maps a vehicle to the time and outcome code (``collision_uav`` or
@@ -416,10 +416,10 @@ def _records_from_trace(trace: list[dict], crashes: dict[int, tuple[float, str]]
                     raise MavlinkSwarmError(f"episode {episode}: vehicle {i}'s crash has no outcome code ({outcome!r})")
                 end_t = min(crash_t, r["t"])
                 break
-            if -p[2] < COLLISION_RADIUS_M:
+            if -p[2] < task.collision_radius_m:
                 outcome, end_t = "collision_ground", r["t"]
                 break
-            if np.linalg.norm(p - sample.goal_ned[i]) < ARRIVAL_RADIUS_M:
+            if np.linalg.norm(p - sample.goal_ned[i]) < task.arrival_radius_m:
                 outcome, end_t = "arrived", r["t"]
                 break
         path_arr = np.asarray(path)
