@@ -50,7 +50,7 @@ from sitl.eval.over_mavlink import evaluate_beside_in_process
 from sitl.eval.evaluate import EvalResult, EvalSettings, density_label, evaluate_method
 from sitl.eval.methods import BASELINES, DEFAULT_POLICY, EvaluationError, resolve_method
 from sitl.eval.paper import DEFAULT_FIG6_NS, PAPER_METHODS, paper_cells, parse_policies, run_paper
-from sitl.eval.report import _write_json, markdown_table
+from sitl.eval.report import write_json, markdown_table
 from sitl.sim.config import CIRCLE_RADIUS_M, DENSITIES, SCENARIOS, ScenarioConfig, density_from_name
 from sitl.sim.dynamics import DYNAMICS_NAMES
 from sitl.sim.scenarios import EVAL_SEED_OFFSET
@@ -239,9 +239,9 @@ def run_single(args: argparse.Namespace) -> int:
         data["mavlink"] = mavlink_info
     metrics_path = out / "metrics.json"
     try:
-        _write_json(metrics_path, data)
+        write_json(metrics_path, data)
         if args.json:
-            _write_json(args.json, data)
+            write_json(args.json, data)
     except OSError as err:  # e.g. the disk filled during the run
         print(f"error: cannot write the metrics: {err}", file=sys.stderr)
         return 1

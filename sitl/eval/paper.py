@@ -10,7 +10,7 @@ from pathlib import Path
 
 from sitl.eval.evaluate import EvalSettings, density_label, evaluate_method
 from sitl.eval.methods import DEFAULT_POLICY, Method, file_digest, resolve_method
-from sitl.eval.report import _write_json, markdown_table
+from sitl.eval.report import write_json, markdown_table
 from sitl.sim.config import CIRCLE_RADIUS_M, DENSITIES, ScenarioConfig, density_from_name
 
 #: Learning methods of Table II whose policy files ``paper`` looks for.
@@ -87,7 +87,7 @@ def run_cell(cell: PaperCell, out: Path, progress: bool = True) -> tuple[dict | 
                           f"{cell.method}, {settings.describe()}")
     data = {"key": key, "settings": {**dataclasses.asdict(settings), "eval_seed": settings.env_seed},
             **result.to_json(with_records=False)}
-    _write_json(path, data)
+    write_json(path, data)
     return result.summary, "computed"
 
 
@@ -165,6 +165,6 @@ def run_paper(out: Path, table: list[PaperCell], fig6: list[PaperCell], progress
                 by_n[c.settings.num_uavs] = summaries[c.name]
         plot_scaling(scaling, out / "fig6_scaling.png", "circle scenario: success and SPL against the swarm size")
     (out / "paper.md").write_text("\n".join(lines))
-    _write_json(out / "paper.json", {"cells": {name: {"summary": summaries[name], "status": status[name]}
+    write_json(out / "paper.json", {"cells": {name: {"summary": summaries[name], "status": status[name]}
                                                for name in summaries}})
     return {"summaries": summaries, "status": status}

@@ -71,7 +71,7 @@ def _json_safe(value):
     return value
 
 
-def _write_json(path: Path, data: dict) -> None:
+def write_json(path: Path, data: dict) -> None:
     """Write atomically: an interrupted run never leaves half a file (``paper`` resumes from them)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")

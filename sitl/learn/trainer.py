@@ -54,9 +54,6 @@ def agent_actor(agent: SacAeAgent) -> ActorFactory:
     return depth_state_actor(lambda depth, state: agent.act(depth, state, explore=False))
 
 
-
-
-
 def plot_learning_curve(history: dict, path: Path, title: str) -> None:
     """Paper Fig. 4 style: average episode reward (and success rate) against episodes."""
     import matplotlib
