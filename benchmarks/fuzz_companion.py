@@ -70,6 +70,7 @@ import fuzz_inputs as fi  # noqa: E402
 from fuzz_inputs import mavlink  # noqa: E402
 
 from companion.spec import ActionSpec  # noqa: E402
+from sitl.cli_args import int_range, positive_float, positive_int  # noqa: E402
 from tests.companion_helpers import Processes, free_udp_ports, read_jsonl  # noqa: E402
 
 MODEL = REPO / "models" / "policy.pt"
@@ -816,13 +817,13 @@ def findings(report: dict) -> list[str]:
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--inputs", type=_positive_int, metavar="N",
+    parser.add_argument("--inputs", type=positive_int, metavar="N",
                         help="MAVLink/signing/depth inputs in all (default 100000; 4000 with --smoke)")
-    parser.add_argument("--seconds", type=_positive_float, metavar="S",
+    parser.add_argument("--seconds", type=positive_float, metavar="S",
                         help="most seconds of injection in all (default: 1.5 x inputs / rate + 5)")
-    parser.add_argument("--rate", type=_positive_float, metavar="HZ",
+    parser.add_argument("--rate", type=positive_float, metavar="HZ",
                         help="injection rate in inputs/s (default 2000, 800 with --smoke: robustness, not CPU starvation)")
-    parser.add_argument("--models", type=_nonnegative_int, metavar="M",
+    parser.add_argument("--models", type=int_range(0), metavar="M",
                         help="hostile model files to try (default 24; 3 with --smoke)")
     parser.add_argument("--signing", action="store_true", help="vehicle and companion sign; add forged/replayed traffic")
     parser.add_argument("--smoke", action="store_true",
@@ -831,9 +832,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument("--kinds", metavar="K1,K2", type=lambda t: set(filter(None, t.split(","))),
                         help="send only these input kinds (to reproduce one fault), e.g. replay_other_link")
-    parser.add_argument("--start-timeout", type=_positive_float, default=60.0, metavar="S",
+    parser.add_argument("--start-timeout", type=positive_float, default=60.0, metavar="S",
                         help="most seconds for a vehicle + companion to start flying (default 60)")
-    parser.add_argument("--model-timeout", type=_positive_float, default=60.0, metavar="S",
+    parser.add_argument("--model-timeout", type=positive_float, default=60.0, metavar="S",
                         help="most seconds for one companion run on a hostile model (default 60)")
     parser.add_argument("--workdir", metavar="DIR", help="keep logs and model files here (default: a temporary folder)")
     args = parser.parse_args(argv)
@@ -853,36 +854,6 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if args.seconds is None:
         args.seconds = 1.5 * args.inputs / args.rate + 5.0
     return args
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {text!r}")
-    return value
-
-
-def _nonnegative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a whole number, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {text!r}")
-    return value
-
-
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
-    return value
 
 
 def split_inputs(total: int, seconds: float, signing: bool) -> tuple[dict[str, int], dict[str, float]]:
