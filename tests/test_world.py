@@ -126,6 +126,9 @@ def test_px4_gcs_port_world_renders_each_vehicle_seeing_the_other(tmp_path):
             start_standins(procs, tmp_path, 2, base, sink, gcs, *FACING_EAST_6M)
             world = start_world(procs, tmp_path, "--px4", "2", "--gcs-port", str(gcs), "--depth-port", str(depth))
             rx.wait_all(30, "depth", procs)
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # what real PX4 sends at start
+                for _ in range(3):
+                    s.sendto(unknown_message(411, sysid=2), ("127.0.0.1", gcs))
             frames = rx.collect(2.0)
             own_frames = own.collect(0.1)
             stop_world(procs, world, tmp_path)
@@ -155,6 +158,10 @@ def test_px4_gcs_port_world_renders_each_vehicle_seeing_the_other(tmp_path):
     assert [e["origin_offset_ned"] for e in events(log, "tracking")] == [[0.0, 0.0, 0.0]] * 2
     status = [e for e in events(log, "status") if e["state"] == "tracking"]
     assert status and all(e["pose_age_ms"] < 100 for e in status)
+    # A message newer than pymavlink's dialect (PX4's CURRENT_EVENT_SEQUENCE) is logged once with
+    # its real system id, not as an unknown system 0 (issue 18, item 9).
+    assert [(e["msg_id"], e["sysid"]) for e in events(log, "unknown_message")] == [(411, 2)]
+    assert not events(log, "ignored_system")
     asked = {(r["vehicle"], r["msg_id"], r["rate_hz"]) for r in events(tmp_path / "vehicle.jsonl", "message_interval")
              if r["link"] == "gcs"}
     assert asked == {(0, 32, 50.0), (0, 30, 50.0), (1, 32, 50.0), (1, 30, 50.0)}  # LOCAL_POSITION_NED, ATTITUDE
@@ -169,7 +176,7 @@ def test_one_connection_per_vehicle_with_explicit_spawn_offsets(tmp_path):
             # The world is each vehicle's onboard peer; vehicle 1's frame is declared 2 m west of vehicle 0's.
             world = start_world(procs, tmp_path, "--connect", f"udpin:127.0.0.1:{base}",
                                 "--connect", f"udpin:127.0.0.1:{base + 1}", "--spawn-offsets", "0,0,0;0,-2,0",
-                                "--depth-port", str(depth))
+                                "--depth-port", str(depth), "--trace", str(tmp_path / "trace.jsonl"))
             rx.wait_all(30, "depth", procs)
             frames = rx.collect(1.0)
             stop_world(procs, world, tmp_path, signal.SIGINT)
@@ -179,10 +186,24 @@ def test_one_connection_per_vehicle_with_explicit_spawn_offsets(tmp_path):
     assert frames[0][-1].depth_m[CENTRE].min() == pytest.approx(6.0 - 2.0 - BODY_RADIUS_M, abs=0.1)
     assert frames[1][-1].depth_m[:16].min() == 20.0
     log = tmp_path / "world.jsonl"
-    assert [e["origin_offset_ned"] for e in events(log, "tracking")] == [[0.0, 0.0, 0.0], [0.0, -2.0, 0.0]]
+    tracking = events(log, "tracking")
+    assert [e["origin_offset_ned"] for e in tracking] == [[0.0, 0.0, 0.0], [0.0, -2.0, 0.0]]
+    # The offsets used are --spawn-offsets', whatever origin the autopilots send (issue 18, item 5).
+    assert [e["origin_source"] for e in tracking] == ["--spawn-offsets"] * 2
+    # --trace: the world positions as drawn (vehicle 1 at 6 m east in its own frame, 2 m west of that), mode, armed.
+    poses = [r for r in read_jsonl(tmp_path / "trace.jsonl") if r.get("event") == "pose" and None not in r["pos_ned"]]
+    assert len(poses) >= 8
+    last = poses[-1]
+    np.testing.assert_allclose(np.array(last["pos_ned"]) - np.array(last["pos_ned"])[0], [[0, 0, 0], [0, 4, 0]], atol=0.05)
+    assert last["armed"] == [True, True] and all(isinstance(m, str) for m in last["mode"])
     asked = {(r["vehicle"], r["msg_id"]) for r in events(tmp_path / "vehicle.jsonl", "message_interval")
              if r["link"] == "onboard"}
     assert asked == {(0, 32), (0, 30), (1, 32), (1, 30)}
+
+
+def unknown_message(msg_id: int, sysid: int, compid: int = 1) -> bytes:
+    """A MAVLink 2 frame of a message id pymavlink's common dialect lacks (an empty payload, any CRC)."""
+    return bytes([0xFD, 0, 0, 0, 0, sysid, compid, msg_id & 0xFF, (msg_id >> 8) & 0xFF, msg_id >> 16, 0, 0])
 
 
 class FakePx4Instances:

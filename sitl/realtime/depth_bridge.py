@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from companion.flight_modes import MAV_AUTOPILOT_INVALID, AutopilotKind
+from companion.flight_modes import MAV_AUTOPILOT_INVALID, AutopilotKind, mode_name
 from companion.frames import geodetic_to_ned, ned_to_geodetic
 from companion.mavlink_link import normalize_connection
 from sitl.cli_args import (
@@ -109,8 +109,13 @@ class Layout:
             or None: from the autopilots' global origins, relative to vehicle 0's.
     """
 
-    def __init__(self, fixed_offsets_ned: np.ndarray | None) -> None:
+    def __init__(self, fixed_offsets_ned: np.ndarray | None, fixed_source: str = "--spawn-offsets") -> None:
         self.fixed = fixed_offsets_ned
+        self.fixed_source = fixed_source  # the option that gave the fixed offsets, for the logs
+
+    def source(self, vehicle: Vehicle) -> str | None:
+        """Where vehicle ``vehicle``'s offset comes from: the layout option, or its origin message."""
+        return vehicle.origin_source if self.fixed is None else self.fixed_source
 
     @property
     def from_origins(self) -> bool:
@@ -145,6 +150,9 @@ class Vehicle:
     kind: str | None = None  # "px4", "ardupilot" or "other"
     heartbeat_s: float = -math.inf
     pos_ned_local: np.ndarray | None = None  # LOCAL_POSITION_NED, in the autopilot's own frame
+    vel_ned: np.ndarray | None = None  # LOCAL_POSITION_NED's velocity, m/s
+    armed: bool | None = None  # from the autopilot's HEARTBEAT
+    mode: str | None = None  # its flight mode's name (companion.flight_modes)
     pos_s: float = -math.inf
     yaw_rad: float = 0.0
     att_s: float = -math.inf
@@ -284,11 +292,14 @@ class DepthBridgeConfig:
     gcs_host: str = "0.0.0.0"
     gcs_port: int = GCS_PORT
     offsets_ned: np.ndarray | None = None
+    offsets_source: str = "--spawn-offsets"  # the option that gave offsets_ned (logged as each vehicle's origin source)
     host: str = "127.0.0.1"
     depth_port: int = DEPTH_BASE_PORT
     camera: CameraConfig = field(default_factory=CameraConfig)
     stream_rate_hz: float = 50.0
     sysid: int = 250
+    trace_path: str | None = None  # every vehicle's world position, velocity, mode and armed state as JSON lines
+    trace_hz: float = 10.0
 
     def __post_init__(self) -> None:
         if bool(self.px4_instances) == bool(self.connections):
@@ -315,13 +326,16 @@ class DepthBridge:
             self.links = [VehicleConnection(j, c, config.sysid) for j, c in enumerate(config.connections)]
             self.link_of = list(self.links)
         self.n = len(self.vehicles)
-        self.layout = Layout(config.offsets_ned)
+        self.layout = Layout(config.offsets_ned, config.offsets_source)
         self.feed = CameraFeed(config.camera, config.host, self.vehicles[0].depth_port, self.n)
         self.next_heartbeat_s = 0.0
         self.unknown_sysids: set[int] = set()
+        self.unknown_messages: set[tuple[int | None, str]] = set()
         self.render_ms: list[float] = []
         self.skipped_frames = 0
         self._cpu_at_status = (time.monotonic(), time.process_time())
+        self.trace = EventLog.open(config.trace_path) if config.trace_path else None
+        self.next_trace_s = 0.0
 
     # ------------------------------------------------------------------ receiving
     def fds(self) -> dict[int, Px4GcsPort | VehicleConnection]:
@@ -337,9 +351,26 @@ class DepthBridge:
 
     def tick(self, now_s: float) -> None:
         self.service(now_s)
+        if self.trace is not None and now_s >= self.next_trace_s:
+            self.next_trace_s = max(self.next_trace_s + 1.0 / self.config.trace_hz, now_s)
+            self._write_trace(now_s)
+
+    def _write_trace(self, now_s: float) -> None:
+        """One ``--trace`` line: per vehicle its world position (None unless placed), velocity, mode, armed.
+
+        The positions are the autopilots' estimates placed by the layout, as they are drawn: what
+        scripts measure arrival, separation and stopping distances with (``sitl.real_autopilots``).
+        """
+        placed = [self._placed(v, now_s)[0] for v in self.vehicles]
+        self.trace("pose", pos_ned=[None if p is None else p.round(3).tolist() for p in placed],
+                   vel_ned=[None if v.vel_ned is None else v.vel_ned.round(3).tolist() for v in self.vehicles],
+                   mode=[v.mode for v in self.vehicles], armed=[v.armed for v in self.vehicles])
 
     def receive(self, link: Px4GcsPort | VehicleConnection, now_s: float) -> None:
         for index, msg in link.receive():
+            if msg.get_type().startswith("UNKNOWN_"):
+                self._skip_unknown(msg)
+                continue
             if index is None:
                 sysid = msg.get_srcSystem()
                 if sysid not in self.unknown_sysids:
@@ -348,6 +379,28 @@ class DepthBridge:
                                                                f"{sorted(v.expected_sysid for v in self.vehicles)}")
                 continue
             self._on_message(self.vehicles[index], msg, now_s)
+
+    def _skip_unknown(self, msg) -> None:
+        """Log once per system and message id a message pymavlink's dialect does not define.
+
+        pymavlink hands such a message over as ``UNKNOWN_<id>`` without its header, so its
+        system id reads 0; the header is still in the raw bytes. PX4 sends several messages
+        that are in PX4's common.xml but newer than pymavlink's: at start CURRENT_EVENT_SEQUENCE
+        (411) and EVENT (410) of its events interface, then LINK_NODE_STATUS (8) and
+        TIME_ESTIMATE_TO_TARGET (380). That was the ``ignored_system sysid 0`` of issue 18.
+        """
+        raw = bytes(getattr(msg, "_msgbuf", b""))
+        sysid = compid = None
+        if len(raw) >= 10 and raw[0] == 0xFD:  # MAVLink 2: magic, len, incompat, compat, seq, sysid, compid, id x3
+            sysid, compid = raw[5], raw[6]
+        elif len(raw) >= 6 and raw[0] == 0xFE:  # MAVLink 1: magic, len, seq, sysid, compid, id
+            sysid, compid = raw[3], raw[4]
+        msg_id = msg.get_type()[len("UNKNOWN_"):]
+        key = (sysid, msg_id)
+        if key not in self.unknown_messages:
+            self.unknown_messages.add(key)
+            self.log("unknown_message", msg_id=int(msg_id) if msg_id.isdigit() else msg_id, sysid=sysid, compid=compid,
+                     why="not in pymavlink's common dialect (newer than the installed pymavlink); skipped")
 
     def _on_message(self, v: Vehicle, msg, now_s: float) -> None:
         kind = msg.get_type()
@@ -364,6 +417,9 @@ class DepthBridge:
                 v.streams_requested_s = -math.inf  # a restarted autopilot forgets our stream requests
                 self.log("connected", vehicle=v.index, sysid=src[0], compid=src[1], autopilot=v.kind, source=v.source)
             v.heartbeat_s = now_s
+            v.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+            kind_ = AutopilotKind.from_heartbeat(msg.autopilot)
+            v.mode = mode_name(kind_, msg.custom_mode) if kind_ is not None else str(msg.custom_mode)
             return
         if v.sysid is None or src != (v.sysid, v.compid):
             return
@@ -371,6 +427,7 @@ class DepthBridge:
             pos = np.array([msg.x, msg.y, msg.z], dtype=np.float64)
             if np.all(np.isfinite(pos)):
                 v.pos_ned_local, v.pos_s = pos, now_s
+                v.vel_ned = np.array([msg.vx, msg.vy, msg.vz], dtype=np.float64)
                 v.pose_msgs += 1
         elif kind == "ATTITUDE":
             if math.isfinite(msg.yaw):
@@ -394,7 +451,7 @@ class DepthBridge:
         moved_m = math.inf if v.origin is None else float(np.linalg.norm(ned_offset_m(v.origin, origin)[:2]))
         if moved_m > 0.05 or source != v.origin_source:
             self.log("origin", vehicle=v.index, source=source, lat_deg=round(origin[0], 8), lon_deg=round(origin[1], 8),
-                     alt_m=round(origin[2], 2))
+                     alt_m=round(origin[2], 2), used=self.layout.from_origins)
         v.origin, v.origin_source = origin, source
 
     # ------------------------------------------------------------------ upkeep
@@ -471,8 +528,11 @@ class DepthBridge:
         v.why = why
         if pos is not None and v.state != "tracking":
             v.state = "tracking"
+            # The source of the offset actually used: with a fixed layout the autopilot's own
+            # GPS_GLOBAL_ORIGIN (ArduPilot sends it unasked) is logged but not used (issue 18, item 5).
             self.log("tracking", vehicle=v.index, sysid=v.sysid, depth_port=v.depth_port,
-                     origin_offset_ned=self.layout.offset_ned(v.index, self.vehicles), origin_source=v.origin_source)
+                     origin_offset_ned=self.layout.offset_ned(v.index, self.vehicles),
+                     origin_source=self.layout.source(v), autopilot_origin_source=v.origin_source)
         elif pos is None and v.state == "tracking":
             v.state = "lost"
             self.log("lost", vehicle=v.index, sysid=v.sysid, why=why, frames_sent=self.feed.frames_sent(v.index))
@@ -505,6 +565,8 @@ class DepthBridge:
         for link in self.links:
             link.close()
         self.feed.close()
+        if self.trace is not None:
+            self.trace.close()
 
 
 # --------------------------------------------------------------------------- command line
@@ -522,6 +584,7 @@ def _offsets(args: argparse.Namespace, n: int, parser: argparse.ArgumentParser) 
             parser.error(f"--spawn-offsets gives {len(rows)} offset(s) but there are {n} vehicles (one N,E,D each)")
         return np.array(rows, dtype=np.float64)
     if args.offset_line is not None or args.spacing is not None:
+        args.offsets_source = "--offset-line" if args.offset_line is not None else "--spacing"
         bearing_deg, dist_m = args.offset_line if args.offset_line is not None else (90.0, args.spacing)
         step = np.array([math.cos(math.radians(bearing_deg)), math.sin(math.radians(bearing_deg)), 0.0]) * dist_m
         return np.arange(n)[:, None] * step[None, :]
@@ -563,6 +626,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--sysid", type=int_range(1, 255), default=250,
                         help="this ground station's MAVLink system id (default 250; QGroundControl uses 255)")
     parser.add_argument("--log", type=output_file, default="-", metavar="PATH", help="JSON-lines event log (default '-': stdout)")
+    parser.add_argument("--trace", type=output_file, metavar="PATH",
+                        help="JSON lines at 10 Hz: every vehicle's world position and velocity (the autopilots' "
+                             "estimates, as drawn), flight mode and armed state")
     parser.add_argument("--duration", type=positive_float, metavar="S", help="stop after S seconds")
     args = parser.parse_args(argv)
 
@@ -583,6 +649,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         parser.error(f"--sysid must be in 1..255, got {args.sysid}")
     if args.spacing is not None and not math.isfinite(args.spacing):
         parser.error("--spacing must be a finite number of metres")
+    args.offsets_source = "--spawn-offsets"
     args.offsets = _offsets(args, n, parser)
     check_camera_arguments(parser, args)
     return args
@@ -592,8 +659,9 @@ def depth_bridge_config(args: argparse.Namespace) -> DepthBridgeConfig:
     """The :class:`DepthBridgeConfig` of parsed options (:func:`parse_args`)."""
     return DepthBridgeConfig(
         px4_instances=args.px4 or 0, connections=tuple(args.connect or ()), px4_first_instance=args.px4_first_instance,
-        gcs_host=args.gcs_host, gcs_port=args.gcs_port, offsets_ned=args.offsets, host=args.host,
-        depth_port=args.depth_port, camera=camera_config(args), stream_rate_hz=args.stream_rate, sysid=args.sysid)
+        gcs_host=args.gcs_host, gcs_port=args.gcs_port, offsets_ned=args.offsets, offsets_source=args.offsets_source, host=args.host,
+        depth_port=args.depth_port, camera=camera_config(args), stream_rate_hz=args.stream_rate, sysid=args.sysid,
+        trace_path=args.trace)
 
 
 def main(argv: list[str] | None = None) -> int:
