@@ -1,0 +1,566 @@
+"""Real ArduCopter and PX4 (SIH) SITL swarms with ``sitl.world`` and one ``companion`` each.
+
+``python -m sitl.real_autopilots`` (docs/real_autopilots.md) and ``tests/test_real_autopilots.py``
+use this module to start, on loopback only:
+
+* N autopilot SITL instances, each at its own home on the ground, in its own working
+  directory under the run's folder: ArduCopter ``arducopter -I i --home LAT,LON,ALT,0``
+  (SERIAL0 on TCP 5760 + 10 i for the world, SERIAL1 5762 + 10 i for the companion, SERIAL2
+  5763 + 10 i for this module's ground-station link) or PX4 with its built-in SIH simulator
+  (``PX4_HOME_LAT``/``PX4_HOME_LON`` per instance; onboard UDP 14540 + i for the companion,
+  ground-station link to UDP 14550 for the world, payload link 14280 + i <-> 14030 + i for
+  this module);
+* ``python -m sitl.world`` on their telemetry (``--trace``: every vehicle's world position,
+  velocity, mode and armed state at 10 Hz, from which everything here is measured);
+* one ``companion`` per vehicle (``--arm --takeoff``), sent its goal by this module acting as
+  a ground station (SET_POSITION_TARGET_LOCAL_NED to component 191, which the autopilot routes
+  to its companion), so that a circle of vehicles starts together.
+
+Every child runs in its own session and gets SIGTERM when this process dies (Linux
+``PR_SET_PDEATHSIG``); :meth:`RealSwarm.close` stops them all (SIGINT / SIGTERM, then SIGKILL).
+
+Positions are the autopilots' estimates placed in the world frame (vehicle 0's local frame)
+by the world: separate SITL instances cannot collide, so a "collision" is two vehicles closer
+than twice the task's collision radius.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from companion.flight_modes import (ARDUCOPTER_MODE_BY_NAME, PX4_MODE_BY_NAME)
+from companion.spec import DEFAULT_TASK_SPEC
+from sitl.realtime.depth_bridge import shift_global
+from sitl.realtime.depth_transport import DEPTH_BASE_PORT
+from sitl.realtime.mavlink_swarm import JsonLinesTail, ProcessGroup, _die_with_parent, companion_command
+
+from pymavlink import mavutil  # noqa: E402  (after companion: MAVLink 2)
+
+ARDUCOPTER, PX4 = "arducopter", "px4"
+KINDS = (ARDUCOPTER, PX4)
+#: Environment variables naming the SITL binaries, and where the build scripts put them.
+BINARY_ENV = {ARDUCOPTER: "SWARMNAV_ARDUCOPTER", PX4: "SWARMNAV_PX4"}
+DEFAULT_BINARY = {ARDUCOPTER: "/tmp/ardupilot/build/sitl/bin/arducopter",
+                  PX4: "/tmp/px4/build/px4_sitl_nodds/bin/px4"}
+BUILD_SCRIPT = {ARDUCOPTER: "tools/arducopter-sitl/build.sh", PX4: "tools/px4-sitl/build.sh"}
+#: Each autopilot's usual SITL home (ArduPilot's CMAC, PX4's Zurich): latitude, longitude deg, altitude m AMSL.
+DEFAULT_HOME = {ARDUCOPTER: (-35.363261, 149.165230, 584.0), PX4: (47.397742, 8.545594, 488.0)}
+PX4_SIH_AUTOSTART = "10040"  # sihsim_quadx
+MAV_COMP_ID_ONBOARD_COMPUTER = 191  # the companion's component id: goals go there
+POSITION_MASK = 0b110111111000  # SET_POSITION_TARGET_LOCAL_NED: position only
+GCS_SYSID = 245  # this module's ground-station link (the world is 250)
+DEFAULT_POLICY = Path(__file__).resolve().parents[2] / "models" / "policy.pt"
+
+
+class SitlError(RuntimeError):
+    """A real-autopilot run could not go on (a process died, something never came), with the reason."""
+
+
+def find_autopilot(kind: str) -> tuple[Path | None, str]:
+    """The SITL binary of ``kind`` (``$SWARMNAV_ARDUCOPTER`` / ``$SWARMNAV_PX4``, else the default
+    path), or None and why not."""
+    env = BINARY_ENV[kind]
+    named = os.environ.get(env)
+    path = Path(named or DEFAULT_BINARY[kind])
+    if path.is_file() and os.access(path, os.X_OK):
+        return path, ""
+    if named:
+        return None, f"${env}={named} is not an executable file"
+    return None, (f"no {kind} SITL binary at {path}: build it with ../shared/{BUILD_SCRIPT[kind]} "
+                  f"or set ${env}")
+
+
+def circle_layout(n: int, radius_m: float, rotation_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Spawn points [n, 2] (north, east m) on a circle around (0, 0) and their antipodes (the goals)."""
+    angles = np.radians(rotation_deg) + 2.0 * np.pi * np.arange(n) / n
+    spawns = radius_m * np.stack([np.cos(angles), np.sin(angles)], axis=1)
+    return spawns, -spawns
+
+
+@dataclass
+class PoseTrace:
+    """The world's ``--trace`` records: UNIX times [T], world positions [T, n, 3] (NaN: not placed),
+    velocities [T, n, 3], modes and armed states [T][n]."""
+
+    t: np.ndarray
+    pos: np.ndarray
+    vel: np.ndarray
+    mode: list
+    armed: list
+
+    @classmethod
+    def from_records(cls, records: list[dict], n: int) -> PoseTrace:
+        rows = [r for r in records if r.get("event") == "pose"]
+        nan3 = [math.nan] * 3
+        pos = np.array([[p if p is not None else nan3 for p in r["pos_ned"]] for r in rows]).reshape(-1, n, 3)
+        vel = np.array([[v if v is not None else nan3 for v in r["vel_ned"]] for r in rows]).reshape(-1, n, 3)
+        return cls(np.array([r["t"] for r in rows]), pos, vel, [r["mode"] for r in rows], [r["armed"] for r in rows])
+
+    def since(self, t0: float) -> PoseTrace:
+        k = self.t >= t0
+        idx = np.flatnonzero(k)
+        return PoseTrace(self.t[k], self.pos[k], self.vel[k], [self.mode[i] for i in idx], [self.armed[i] for i in idx])
+
+
+class Children(ProcessGroup):
+    """:class:`~sitl.realtime.mavlink_swarm.ProcessGroup` with a working directory and extra environment per child."""
+
+    def start(self, name: str, argv: list[str], out_path: Path, cwd: Path | None = None,
+              env: dict | None = None) -> subprocess.Popen:
+        with open(out_path, "wb") as out:
+            proc = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                    env=dict(os.environ, PYTHONUNBUFFERED="1", **(env or {})), cwd=cwd,
+                                    start_new_session=True, preexec_fn=_die_with_parent)
+        self.procs[name] = proc
+        self.started_s[name] = time.monotonic()
+        return proc
+
+
+class RealSwarm:
+    """N real autopilot SITL instances, ``sitl.world`` and their companions; see the module docstring.
+
+    Args:
+        kind: ``arducopter`` or ``px4``.
+        binary: the SITL binary (:func:`find_autopilot`).
+        spawns_ne: [n, 2] each vehicle's home, north/east metres from ``home``.
+        out: the run's folder (logs, traces, the instances' working directories).
+        home: latitude, longitude deg, altitude m of the point ``spawns_ne`` are relative to.
+        params: autopilot parameters set before flight (ArduPilot: a defaults file; PX4: ``param set``).
+        camera_hz: the world's camera rate.
+    """
+
+    def __init__(self, kind: str, binary: Path, spawns_ne: np.ndarray, out: Path,
+                 home: tuple[float, float, float] | None = None, params: dict[str, float] | None = None,
+                 camera_hz: float = 30.0) -> None:
+        if kind not in KINDS:
+            raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
+        self.kind, self.binary, self.out = kind, Path(binary), Path(out)
+        self.spawns = np.asarray(spawns_ne, dtype=np.float64).reshape(-1, 2)
+        self.n = len(self.spawns)
+        self.home = home or DEFAULT_HOME[kind]
+        self.params = dict(params or {})
+        self.camera_hz = camera_hz
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.procs = Children()
+        self.offsets: np.ndarray | None = None  # each vehicle's local origin in the world frame, from the world
+        self.gcs: list = [None] * self.n
+        self.world_log = self.out / "world.jsonl"
+        self.trace_path = self.out / "trace.jsonl"
+        self._trace_tail = JsonLinesTail(self.trace_path)
+        self._trace_records: list[dict] = []
+
+    # ------------------------------------------------------------------ ports
+    def companion_connection(self, i: int) -> str:
+        return f"tcp:127.0.0.1:{5762 + 10 * i}" if self.kind == ARDUCOPTER else f"udp:{14540 + i}"
+
+    def world_source(self) -> list[str]:
+        if self.kind == ARDUCOPTER:
+            return [a for i in range(self.n) for a in ("--connect", f"tcp:127.0.0.1:{5760 + 10 * i}")]
+        return ["--px4", str(self.n)]
+
+    def gcs_connection(self, i: int) -> str:
+        return f"tcp:127.0.0.1:{5763 + 10 * i}" if self.kind == ARDUCOPTER else f"udpin:127.0.0.1:{14030 + i}"
+
+    # ------------------------------------------------------------------ starting
+    def __enter__(self) -> RealSwarm:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def home_of(self, i: int) -> tuple[float, float, float]:
+        return shift_global(self.home, float(self.spawns[i, 0]), float(self.spawns[i, 1]))
+
+    def start_autopilots(self) -> None:
+        """Start every instance at its own home (ArduPilot: then waits for the world on SERIAL0)."""
+        for i in range(self.n):
+            lat, lon, alt = self.home_of(i)
+            folder = self.out / f"{self.kind}_{i}"
+            folder.mkdir(exist_ok=True)
+            if self.kind == ARDUCOPTER:
+                root = self.binary.resolve().parents[3]  # build/sitl/bin/arducopter -> the source tree
+                defaults = [root / "Tools" / "autotest" / "default_params" / "copter.parm"]
+                if not defaults[0].is_file():
+                    raise SitlError(f"ArduCopter defaults {defaults[0]} not found next to {self.binary}")
+                if self.params:
+                    extra = folder / "swarmnav.parm"
+                    extra.write_text("".join(f"{k} {v:g}\n" for k, v in self.params.items()))
+                    defaults.append(extra)
+                argv = [str(self.binary), "-w", "-S", "--model", "+", "--speedup", "1", "-I", str(i),
+                        "--sysid", str(i + 1), "--home", f"{lat:.8f},{lon:.8f},{alt:.1f},0",
+                        "--defaults", ",".join(str(d) for d in defaults)]
+                self._start(f"autopilot_{i}", argv, cwd=folder)
+            else:
+                env = {"PX4_SYS_AUTOSTART": PX4_SIH_AUTOSTART, "PX4_SIM_MODEL": "sihsim_quadx",
+                       "PX4_SIMULATOR": "sihsim", "PX4_HOME_LAT": f"{lat:.8f}", "PX4_HOME_LON": f"{lon:.8f}",
+                       "PX4_HOME_ALT": f"{alt:.1f}"}
+                etc = self.binary.resolve().parent.parent / "etc"
+                argv = [str(self.binary), "-d", "-i", str(i), "-w", str(folder), str(etc)]
+                self._start(f"autopilot_{i}", argv, env=env)
+
+    def _start(self, name: str, argv: list[str], cwd: Path | None = None, env: dict | None = None) -> None:
+        self.procs.start(name, argv, self.out / f"{name}.out", cwd=cwd, env=env)
+
+    def start_world(self, *extra: str) -> None:
+        argv = [sys.executable, "-m", "sitl.world", *self.world_source(), "--log", str(self.world_log),
+                "--trace", str(self.trace_path), "--camera-hz", f"{self.camera_hz:g}", *extra]
+        self.procs.start("world", argv, self.out / "world.out")
+
+    def set_px4_params(self) -> None:
+        """``param set`` each of ``params`` on every PX4 instance (its ``px4-param`` client)."""
+        client = self.binary.parent / "px4-param"
+        for i in range(self.n):
+            for name, value in self.params.items():
+                subprocess.run([str(client), "--instance", str(i), "set", name, f"{value:g}"], check=False,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, timeout=10,
+                               cwd=self.out / f"{self.kind}_{i}")
+
+    def wait_tracking(self, timeout_s: float) -> np.ndarray:
+        """Until the world draws every vehicle (the autopilots' estimators have a position and an
+        origin); returns each vehicle's origin offset in the world frame [n, 3]."""
+        deadline = time.monotonic() + timeout_s
+        tail = JsonLinesTail(self.world_log)
+        offsets: dict[int, list] = {}
+        while time.monotonic() < deadline:
+            for r in tail.read():
+                if r.get("event") == "tracking":
+                    offsets[int(r["vehicle"])] = r["origin_offset_ned"]
+            if len(offsets) == self.n:
+                self.offsets = np.array([offsets[i] for i in range(self.n)], dtype=np.float64)
+                return self.offsets
+            self.check_alive()
+            time.sleep(0.2)
+        raise SitlError(f"the world did not track every vehicle within {timeout_s:g} s "
+                        f"(tracking: {sorted(offsets)}); logs in {self.out}")
+
+    def local_goal(self, i: int, goal_world_ned: np.ndarray) -> np.ndarray:
+        """A world-frame point in vehicle ``i``'s own local frame (what its companion's --goal means)."""
+        assert self.offsets is not None, "wait_tracking first"
+        return np.asarray(goal_world_ned, dtype=np.float64) - self.offsets[i]
+
+    def start_companion(self, i: int, *extra: str, takeoff_m: float = 8.0, policy: Path = DEFAULT_POLICY) -> None:
+        argv = [*companion_command(), "--connect", self.companion_connection(i), "--camera",
+                f"sitl:{DEPTH_BASE_PORT + i}", "--model", str(policy), "--arm", "--takeoff", f"{takeoff_m:g}",
+                "--heartbeat-timeout", "60", "--log", str(self.companion_log(i)), *extra]
+        self.procs.start(f"companion_{i}", argv, self.out / f"companion_{i}.out")
+
+    def companion_log(self, i: int) -> Path:
+        return self.out / f"companion_{i}.jsonl"
+
+    # ------------------------------------------------------------------ watching
+    def check_alive(self, allowed: tuple[str, ...] = ()) -> None:
+        for name, code in self.procs.dead():
+            if name in allowed or name.startswith("companion_") and code == 0:
+                continue
+            tail = ""
+            with contextlib.suppress(OSError, IndexError):
+                tail = (self.out / f"{name}.out").read_text(errors="replace").strip().splitlines()[-1][:300]
+            raise SitlError(f"{name} exited with code {code} ({tail or 'no output'}); logs in {self.out}")
+
+    def trace(self) -> PoseTrace:
+        self._trace_records += self._trace_tail.read()
+        return PoseTrace.from_records(self._trace_records, self.n)
+
+    def phases(self, i: int) -> list[dict]:
+        return [r for r in JsonLinesTail(self.companion_log(i)).read() if r.get("event") == "phase"]
+
+    def wait_phase(self, names: list[int], phase: str, timeout_s: float, allowed_dead: tuple[str, ...] = ()) -> None:
+        """Until each companion in ``names`` has logged ``phase``."""
+        deadline = time.monotonic() + timeout_s
+        tails = {i: JsonLinesTail(self.companion_log(i)) for i in names}
+        seen: dict[int, str] = dict.fromkeys(names, "starting")
+        while time.monotonic() < deadline:
+            for i, tail in tails.items():
+                for r in tail.read():
+                    if r.get("event") == "phase" and r.get("to"):
+                        seen[i] = r["to"] if seen[i] != phase else phase
+            if all(p == phase for p in seen.values()):
+                return
+            self.check_alive(allowed_dead)
+            time.sleep(0.1)
+        raise SitlError(f"not every companion reached {phase} within {timeout_s:g} s: {seen}; logs in {self.out}")
+
+    # ------------------------------------------------------------------ the ground station
+    def _gcs(self, i: int):
+        if self.gcs[i] is None:
+            with contextlib.redirect_stdout(sys.stderr):
+                conn = mavutil.mavlink_connection(self.gcs_connection(i), source_system=GCS_SYSID,
+                                                  source_component=190, dialect="common")
+            conn.mav.robust_parsing = True
+            self.gcs[i] = conn
+        conn = self.gcs[i]
+        if self.kind == PX4 and getattr(conn, "last_address", None) is None:
+            conn.recv_match(type="HEARTBEAT", blocking=True, timeout=10)  # learn PX4's address
+        return conn
+
+    def send_goal(self, i: int, goal_local_ned: np.ndarray) -> None:
+        """A run-time goal for companion ``i``, through its autopilot (routed to component 191)."""
+        conn = self._gcs(i)
+        conn.mav.set_position_target_local_ned_send(0, i + 1, MAV_COMP_ID_ONBOARD_COMPUTER,
+                                                    mavutil.mavlink.MAV_FRAME_LOCAL_NED, POSITION_MASK,
+                                                    *map(float, goal_local_ned), 0, 0, 0, 0, 0, 0, math.nan, math.nan)
+
+    def set_mode(self, i: int, mode: str) -> None:
+        """Switch vehicle ``i`` to ``mode`` (an ArduCopter or PX4 name, as in companion.flight_modes), as a pilot would."""
+        conn = self._gcs(i)
+        if self.kind == ARDUCOPTER:
+            main, sub = ARDUCOPTER_MODE_BY_NAME[mode], 0
+        else:
+            main, sub = PX4_MODE_BY_NAME[mode]
+        conn.mav.command_long_send(i + 1, 1, mavutil.mavlink.MAV_CMD_DO_SET_MODE, 0,
+                                   mavutil.mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, main, sub, 0, 0, 0, 0)
+
+    def drain_gcs(self) -> None:
+        for conn in self.gcs:
+            if conn is not None:
+                with contextlib.suppress(OSError), contextlib.redirect_stdout(sys.stderr):
+                    while conn.recv_msg() is not None:
+                        pass
+
+    def signal_companion(self, i: int, sig: int) -> None:
+        proc = self.procs.procs[f"companion_{i}"]
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, sig)
+
+    # ------------------------------------------------------------------ stopping
+    def close(self) -> None:
+        """Stop everything: companions, the world, then the autopilots (SIGKILL whoever stays)."""
+        for conn in self.gcs:
+            if conn is not None:
+                with contextlib.suppress(OSError):
+                    conn.close()
+        names = list(self.procs.procs)
+        self.procs.stop([n for n in names if n.startswith("companion_")])
+        self.procs.stop([n for n in names if n == "world"])
+        autopilots = [n for n in names if n.startswith("autopilot_")]
+        for name in autopilots:  # PX4 and ArduPilot SITL stop on SIGTERM; SIGINT is ignored by px4 -d
+            proc = self.procs.procs[name]
+            if proc.poll() is None:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(proc.pid, signal.SIGTERM)
+        self.procs.stop(autopilots, grace_s=5.0)
+
+
+# --------------------------------------------------------------------------- measurements
+
+
+def pairwise_min_distance(pos: np.ndarray) -> tuple[float, tuple[int, int]]:
+    """Closest approach of any two vehicles over a trace [T, n, 3] (NaN rows skipped)."""
+    best, pair = math.inf, (-1, -1)
+    n = pos.shape[1]
+    for a in range(n):
+        for b in range(a + 1, n):
+            d = np.linalg.norm(pos[:, a] - pos[:, b], axis=1)
+            d = d[np.isfinite(d)]
+            if d.size and d.min() < best:
+                best, pair = float(d.min()), (a, b)
+    return best, pair
+
+
+def fly_circle(kind: str, binary: Path, n: int, out: Path, radius_m: float = 12.0, altitude_m: float = 8.0,
+               rotation_deg: float = 0.0, time_limit_s: float = 60.0, ready_timeout_s: float = 240.0,
+               settle_s: float = 5.0, params: dict[str, float] | None = None, status=print) -> dict:
+    """A circle of ``n`` vehicles flying to their antipodes together; the measured results.
+
+    Arrival is the first time within the task's arrival radius of the goal; the settled error is
+    the distance to the goal ``settle_s`` after arrival; a collision is two vehicles closer than
+    twice the task's collision radius at any time after the goals were sent.
+    """
+    spawns, goals_ne = circle_layout(n, radius_m, rotation_deg)
+    spawns_rel = spawns - spawns[0]  # the world frame is vehicle 0's local frame
+    goals = np.concatenate([goals_ne - spawns[0], np.full((n, 1), -altitude_m)], axis=1)
+    started = time.monotonic()
+    with RealSwarm(kind, binary, spawns_rel, out, params=params) as swarm:
+        swarm.start_autopilots()
+        swarm.start_world()
+        if kind == PX4 and params:
+            time.sleep(5.0)
+            swarm.set_px4_params()
+        offsets = swarm.wait_tracking(ready_timeout_s)
+        status(f"{kind}: world tracks all {n} after {time.monotonic() - started:.0f} s; starting companions")
+        for i in range(n):
+            swarm.start_companion(i, takeoff_m=altitude_m)
+        swarm.wait_phase(list(range(n)), "flying_to_goal", ready_timeout_s)
+        ready_s = time.monotonic() - started
+        status(f"{kind}: all {n} airborne after {ready_s:.0f} s; sending the goals")
+        t0 = time.time()
+        for _ in range(3):  # copies: a lost datagram must not cost a vehicle its flight
+            for i in range(n):
+                swarm.send_goal(i, swarm.local_goal(i, goals[i]))
+            time.sleep(0.05)
+        arrived_t = np.full(n, math.nan)
+        while time.time() - t0 < time_limit_s:
+            swarm.drain_gcs()
+            swarm.check_alive()
+            tr = swarm.trace().since(t0)
+            if len(tr.t):
+                dist = np.linalg.norm(tr.pos - goals[None], axis=2)
+                for i in range(n):
+                    hits = np.flatnonzero(dist[:, i] < DEFAULT_TASK_SPEC.arrival_radius_m)
+                    if math.isnan(arrived_t[i]) and hits.size:
+                        arrived_t[i] = tr.t[hits[0]]
+            if np.all(np.isfinite(arrived_t)) and time.time() > np.nanmax(arrived_t) + settle_s + 0.5:
+                break
+            time.sleep(0.2)
+        tr = swarm.trace().since(t0)
+        world_status = [r for r in JsonLinesTail(swarm.world_log).read() if r.get("event") == "world_status"]
+    return _circle_summary(kind, n, radius_m, altitude_m, rotation_deg, tr, goals, offsets, arrived_t, t0,
+                           settle_s, ready_s, world_status)
+
+
+def _circle_summary(kind, n, radius_m, altitude_m, rotation_deg, tr: PoseTrace, goals, offsets, arrived_t, t0,
+                    settle_s, ready_s, world_status) -> dict:
+    closest, pair = pairwise_min_distance(tr.pos)
+    settled = []
+    for i in range(n):
+        if math.isnan(arrived_t[i]):
+            settled.append(None)
+            continue
+        k = np.flatnonzero(tr.t >= arrived_t[i] + settle_s)
+        settled.append(round(float(np.linalg.norm(tr.pos[k[0], i] - goals[i])), 3) if k.size else None)
+    cpu = [w["cpu_percent"] for w in world_status]
+    skipped = max((w["skipped_frames"] for w in world_status), default=0)
+    return {
+        "autopilot": kind, "n": n, "radius_m": radius_m, "altitude_m": altitude_m, "rotation_deg": rotation_deg,
+        "arrived": int(np.isfinite(arrived_t).sum()),
+        "collisions": int(closest < 2 * DEFAULT_TASK_SPEC.collision_radius_m),
+        "closest_pair_m": round(closest, 3), "closest_pair": list(pair),
+        "flight_s": [None if math.isnan(a) else round(a - t0, 1) for a in arrived_t],
+        "settled_error_m": settled, "settle_s": settle_s,
+        "origin_offsets_ned": np.round(offsets, 3).tolist(), "ready_s": round(ready_s, 1),
+        "world_cpu_percent_median": float(np.median(cpu)) if cpu else None, "world_skipped_frames": skipped,
+    }
+
+
+def fly_and_stop(kind: str, binary: Path, out: Path, sig: int, distance_m: float = 30.0, altitude_m: float = 8.0,
+                 trigger_speed_mps: float = 1.5, watch_s: float = 12.0, ready_timeout_s: float = 240.0,
+                 params: dict[str, float] | None = None, status=print) -> dict:
+    """One vehicle flies towards a goal ``distance_m`` north; once faster than ``trigger_speed_mps``
+    its companion gets ``sig``. Measures how far and how long the vehicle went on, and its mode after."""
+    goal = np.array([distance_m, 0.0, -altitude_m])
+    with RealSwarm(kind, binary, np.zeros((1, 2)), out, params=params) as swarm:
+        swarm.start_autopilots()
+        swarm.start_world()
+        if kind == PX4 and params:
+            time.sleep(5.0)
+            swarm.set_px4_params()
+        swarm.wait_tracking(ready_timeout_s)
+        swarm.start_companion(0, "--goal", ",".join(f"{c:g}" for c in goal), takeoff_m=altitude_m)
+        swarm.wait_phase([0], "flying_to_goal", ready_timeout_s)
+        deadline = time.monotonic() + 60.0
+        while True:
+            swarm.check_alive()
+            tr = swarm.trace()
+            if len(tr.t) and np.linalg.norm(tr.vel[-1, 0, :2]) > trigger_speed_mps:
+                break
+            if time.monotonic() > deadline:
+                raise SitlError(f"the vehicle never flew faster than {trigger_speed_mps} m/s; logs in {out}")
+            time.sleep(0.05)
+        t_sig = time.time()
+        pos_sig, speed_sig = tr.pos[-1, 0].copy(), float(np.linalg.norm(tr.vel[-1, 0, :2]))
+        swarm.signal_companion(0, sig)
+        status(f"{kind}: {signal.Signals(sig).name} at {speed_sig:.2f} m/s")
+        time.sleep(watch_s)
+        tr = swarm.trace().since(t_sig)
+        exit_code = swarm.procs.procs["companion_0"].poll()
+    horizontal = np.linalg.norm(tr.pos[:, 0, :2] - pos_sig[:2], axis=1)
+    speed = np.linalg.norm(tr.vel[:, 0, :2], axis=1)
+    moving = np.flatnonzero(speed > 0.2)
+    stop_k = (moving[-1] + 1) if moving.size else 0
+    stop_k = min(stop_k, len(tr.t) - 1)
+    return {
+        "autopilot": kind, "signal": signal.Signals(sig).name, "speed_at_signal_mps": round(speed_sig, 2),
+        "stop_distance_m": round(float(np.nanmax(horizontal)), 2),
+        "stopped_after_s": round(float(tr.t[stop_k] - t_sig), 2), "still_moving_at_end": bool(speed[-1] > 0.2),
+        "climb_m": round(float(-(np.nanmin(tr.pos[:, 0, 2]) - pos_sig[2])), 2),
+        "modes_after": list(dict.fromkeys(m[0] for m in tr.mode)), "companion_exit": exit_code,
+        "params": params or {},
+    }
+
+
+def write_summary(out: Path, summary: dict) -> None:
+    (Path(out) / "summary.json").write_text(json.dumps(summary, indent=1))
+
+
+# --------------------------------------------------------------------------- command line
+
+
+def _param(text: str) -> tuple[str, float]:
+    import argparse
+
+    name, sep, value = text.partition("=")
+    try:
+        number = float(value)
+    except ValueError:
+        number = math.nan
+    if not sep or not name.strip() or not math.isfinite(number):
+        raise argparse.ArgumentTypeError(f"expected NAME=VALUE with a finite number, got {text!r}")
+    return name.strip().upper(), number
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m sitl.real_autopilots circle|stop``: run and print the measured results as JSON."""
+    import argparse
+
+    from sitl.cli_args import ArgumentParser, finite_float, output_dir, positive_float, int_range
+
+    parser = ArgumentParser(prog="python -m sitl.real_autopilots", description=__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="what", required=True)
+    circle = sub.add_parser("circle", help="a circle of N vehicles flying to their antipodes together")
+    stop = sub.add_parser("stop", help="one vehicle in flight; its companion gets a signal: how far does it go on?")
+    for p in (circle, stop):
+        p.add_argument("--autopilot", choices=KINDS, required=True)
+        p.add_argument("--out", type=output_dir, required=True, metavar="DIR", help="logs, traces and summary.json")
+        p.add_argument("--altitude", type=positive_float, default=8.0, help="flight altitude in metres (default 8)")
+        p.add_argument("--param", type=_param, action="append", default=[], metavar="NAME=VALUE",
+                       help="an autopilot parameter set before flight, repeatable (e.g. GUID_TIMEOUT=0.5)")
+        p.add_argument("--ready-timeout", type=positive_float, default=240.0, metavar="S",
+                       help="start-up limit: boot, EKF position, arming and takeoff (default 240 s)")
+    circle.add_argument("--n", type=int_range(2, 16), default=8)
+    circle.add_argument("--radius", type=positive_float, default=12.0, help="circle radius in metres (default 12)")
+    circle.add_argument("--rotation", type=finite_float, default=0.0, metavar="DEG",
+                        help="bearing of vehicle 0's spawn point from the centre (default 0)")
+    circle.add_argument("--time-limit", type=positive_float, default=60.0, metavar="S",
+                        help="after the goals are sent (default 60 s)")
+    stop.add_argument("--signal", choices=("TERM", "KILL", "INT"), default="TERM")
+    stop.add_argument("--distance", type=positive_float, default=30.0, help="goal distance north in metres (default 30)")
+    args = parser.parse_args(argv)
+
+    binary, why = find_autopilot(args.autopilot)
+    if binary is None:
+        print(f"sitl.real_autopilots: error: {why}", file=sys.stderr)
+        return 1
+    params = dict(args.param)
+
+    def status(text: str) -> None:
+        print(text, file=sys.stderr, flush=True)
+
+    try:
+        if args.what == "circle":
+            summary = fly_circle(args.autopilot, binary, args.n, args.out, args.radius, args.altitude, args.rotation,
+                                 args.time_limit, args.ready_timeout, params=params, status=status)
+        else:
+            summary = fly_and_stop(args.autopilot, binary, args.out, getattr(signal, f"SIG{args.signal}"),
+                                   args.distance, args.altitude, ready_timeout_s=args.ready_timeout, params=params,
+                                   status=status)
+    except SitlError as err:
+        print(f"sitl.real_autopilots: error: {err}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("sitl.real_autopilots: interrupted; every process stopped", file=sys.stderr)
+        return 130
+    write_summary(args.out, summary)
+    print(json.dumps(summary))
+    return 0
