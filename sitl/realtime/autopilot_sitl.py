@@ -41,7 +41,7 @@ import numpy as np
 
 from companion.flight_modes import (ARDUCOPTER_MODE_BY_NAME, PX4_MODE_BY_NAME)
 from companion.spec import DEFAULT_TASK_SPEC
-from sitl.realtime.depth_bridge import shift_global
+from sitl.realtime.depth_bridge import ned_offset_m, shift_global
 from sitl.realtime.depth_transport import DEPTH_BASE_PORT
 from sitl.realtime.mavlink_swarm import JsonLinesTail, ProcessGroup, _die_with_parent, companion_command
 
@@ -226,23 +226,42 @@ class RealSwarm:
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, timeout=10,
                                cwd=self.out / f"{self.kind}_{i}")
 
-    def wait_tracking(self, timeout_s: float) -> np.ndarray:
+    def wait_tracking(self, timeout_s: float, origin_wait_s: float = 12.0) -> np.ndarray:
         """Until the world draws every vehicle (the autopilots' estimators have a position and an
-        origin); returns each vehicle's origin offset in the world frame [n, 3]."""
+        origin) and, for up to ``origin_wait_s`` more, until every origin is a GPS_GLOBAL_ORIGIN
+        (not the HOME_POSITION stand-in); returns each vehicle's origin offset in the world frame [n, 3]."""
         deadline = time.monotonic() + timeout_s
         tail = JsonLinesTail(self.world_log)
-        offsets: dict[int, list] = {}
+        tracking: set[int] = set()
+        origins: dict[int, dict] = {}
+        settle_until = math.inf
         while time.monotonic() < deadline:
             for r in tail.read():
                 if r.get("event") == "tracking":
-                    offsets[int(r["vehicle"])] = r["origin_offset_ned"]
-            if len(offsets) == self.n:
-                self.offsets = np.array([offsets[i] for i in range(self.n)], dtype=np.float64)
-                return self.offsets
+                    tracking.add(int(r["vehicle"]))
+                elif r.get("event") == "origin":
+                    origins[int(r["vehicle"])] = r
+            if len(tracking) == self.n:
+                settle_until = min(settle_until, time.monotonic() + origin_wait_s)
+                fixed = all(origins.get(i, {}).get("source") == "GPS_GLOBAL_ORIGIN" for i in range(self.n))
+                if fixed or time.monotonic() > settle_until:
+                    break
             self.check_alive()
             time.sleep(0.2)
-        raise SitlError(f"the world did not track every vehicle within {timeout_s:g} s "
-                        f"(tracking: {sorted(offsets)}); logs in {self.out}")
+        else:
+            raise SitlError(f"the world did not track every vehicle within {timeout_s:g} s "
+                            f"(tracking: {sorted(tracking)}); logs in {self.out}")
+        if len(origins) == self.n:  # default layout: the offsets the world uses now
+            ref = (origins[0]["lat_deg"], origins[0]["lon_deg"], 0.0)
+            self.offsets = np.array([ned_offset_m(ref, (origins[i]["lat_deg"], origins[i]["lon_deg"], 0.0))
+                                     for i in range(self.n)])
+        else:
+            self.offsets = np.array([r["origin_offset_ned"] for r in self._tracking_events()], dtype=np.float64)
+        return self.offsets
+
+    def _tracking_events(self) -> list[dict]:
+        last = {int(r["vehicle"]): r for r in JsonLinesTail(self.world_log).read() if r.get("event") == "tracking"}
+        return [last[i] for i in range(self.n)]
 
     def local_goal(self, i: int, goal_world_ned: np.ndarray) -> np.ndarray:
         """A world-frame point in vehicle ``i``'s own local frame (what its companion's --goal means)."""

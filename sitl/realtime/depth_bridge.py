@@ -70,6 +70,7 @@ POSE_TIMEOUT_S = 0.5  # older telemetry: no frames for that vehicle, and it is n
 HEARTBEAT_PERIOD_S = 1.0
 STREAM_CHECK_PERIOD_S = 5.0  # ask for the streams again while they come at under half the rate
 ORIGIN_REQUEST_PERIOD_S = 2.0
+ORIGIN_REQUESTS_AFTER_HOME = 5  # GPS_GLOBAL_ORIGIN is still asked for this often once HOME_POSITION gave an origin
 REOPEN_PERIOD_S = 2.0  # retry a --connect link that cannot be opened or dropped
 RECONNECTED_AFTER_S = 3.0  # a heartbeat after this much silence is logged as a new connection
 MAV_COMP_ID_MISSIONPLANNER = 190  # a ground station's component id
@@ -166,6 +167,7 @@ class Vehicle:
     frames_at_status: int = 0
     streams_requested_s: float = -math.inf
     origin_requested_s: float = -math.inf
+    origin_requests: int = 0  # GPS_GLOBAL_ORIGIN requests since HOME_POSITION gave an origin
     refusals_logged: set = field(default_factory=set)
 
     def pose_age_s(self, now_s: float) -> float:
@@ -479,9 +481,19 @@ class DepthBridge:
                     self.log("streams_requested", vehicle=v.index, rate_hz=self.config.stream_rate_hz,
                              measured_hz=None if first else round(v.pose_rate_hz, 1))
                 v.streams_requested_s, v.pose_msgs_at_check = now_s, v.pose_msgs
-            if self.layout.from_origins and v.origin is None and now_s - v.origin_requested_s >= ORIGIN_REQUEST_PERIOD_S:
+            # GPS_GLOBAL_ORIGIN is the local frame's origin itself; HOME_POSITION (less its local
+            # position) only stands in until it comes, so it is asked for a while longer (PX4
+            # answers HOME_POSITION first; the two differ by up to ~0.5 m in SIH).
+            wants_origin = v.origin is None or (v.origin_source != "GPS_GLOBAL_ORIGIN"
+                                                and v.origin_requests < ORIGIN_REQUESTS_AFTER_HOME)
+            if self.layout.from_origins and wants_origin and now_s - v.origin_requested_s >= ORIGIN_REQUEST_PERIOD_S:
                 v.origin_requested_s = now_s
-                for msg_id in (mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN, mavlink.MAVLINK_MSG_ID_HOME_POSITION):
+                if v.origin is not None:
+                    v.origin_requests += 1
+                msg_ids = [mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN]
+                if v.origin is None:
+                    msg_ids.append(mavlink.MAVLINK_MSG_ID_HOME_POSITION)
+                for msg_id in msg_ids:
                     mav.command_long_send(v.sysid, v.compid, mavlink.MAV_CMD_REQUEST_MESSAGE, 0, msg_id, 0, 0, 0, 0, 0, 0)
 
     def _request_streams(self, v: Vehicle, mav: mavlink.MAVLink) -> None:
