@@ -251,7 +251,7 @@ class RealSwarm:
         else:
             raise SitlError(f"the world did not track every vehicle within {timeout_s:g} s "
                             f"(tracking: {sorted(tracking)}); logs in {self.out}")
-        if len(origins) == self.n:  # default layout: the offsets the world uses now
+        if len(origins) == self.n and all(o.get("used", True) for o in origins.values()):  # the world's offsets now
             ref = (origins[0]["lat_deg"], origins[0]["lon_deg"], 0.0)
             self.offsets = np.array([ned_offset_m(ref, (origins[i]["lat_deg"], origins[i]["lon_deg"], 0.0))
                                      for i in range(self.n)])

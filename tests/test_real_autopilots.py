@@ -1,0 +1,154 @@
+"""The product on real autopilots: ArduCopter SITL and PX4 SITL (SIH), ``sitl.world`` and ``companion``.
+
+Runs where an autopilot SITL binary is found — ``$SWARMNAV_ARDUCOPTER`` / ``$SWARMNAV_PX4``, else
+the build scripts' paths (/tmp/ardupilot/build/sitl/bin/arducopter, /tmp/px4/build/px4_sitl_nodds/bin/px4)
+— and skips with the reason otherwise (CI has no binaries). Build them with
+``../shared/tools/arducopter-sitl/build.sh`` and ``../shared/tools/px4-sitl/build.sh``.
+
+Everything is on loopback on the autopilots' fixed SITL ports (do not run two of these at
+once), bounded by a timeout per test, and every process is stopped at the end of each test,
+also on failure (:class:`sitl.realtime.autopilot_sitl.RealSwarm`). Positions are the
+autopilots' estimates placed in one world frame by ``sitl.world --trace``.
+
+The distances asserted are the documented ones (docs/real_autopilots.md): a companion stopped
+with SIGTERM stops its vehicle within 2 m; after SIGKILL the autopilot's own companion-loss
+failsafe stops it, within 4 m with the parameters the docs recommend (ArduPilot
+``GUID_TIMEOUT 0.5``; PX4 ``COM_OF_LOSS_T 0.5``, ``COM_OBL_RC_ACT 5``, Hold).
+"""
+
+from __future__ import annotations
+
+import signal
+import time
+
+import numpy as np
+import pytest
+
+from sitl.realtime.autopilot_sitl import (ARDUCOPTER, KINDS, PX4, RealSwarm, fly_and_stop, fly_circle,
+                                          find_autopilot)
+
+SIGTERM_STOP_M = 2.0  # docs/real_autopilots.md: a SIGTERM'd companion's vehicle stops within this
+SIGKILL_STOP_M = 4.0  # ... and after SIGKILL, with the recommended failsafe parameters
+#: The autopilot parameters docs/real_autopilots.md recommends for a companion that dies.
+COMPANION_LOSS_PARAMS = {ARDUCOPTER: {"GUID_TIMEOUT": 0.5}, PX4: {"COM_OF_LOSS_T": 0.5, "COM_OBL_RC_ACT": 5}}
+HOLD_MODES = {ARDUCOPTER: "BRAKE", PX4: "AUTO.LOITER"}  # what the pilot switches to in the hand-back test
+READY_TIMEOUT_S = 240.0
+
+
+def _binary(kind: str):
+    path, why = find_autopilot(kind)
+    if path is None:
+        pytest.skip(why)
+    return path
+
+
+@pytest.fixture(params=KINDS)
+def autopilot(request):
+    """(kind, binary) for each autopilot whose SITL binary is here."""
+    return request.param, _binary(request.param)
+
+
+def _single(kind, binary, out, params=None) -> RealSwarm:
+    swarm = RealSwarm(kind, binary, np.zeros((1, 2)), out, params=params)
+    swarm.start_autopilots()
+    swarm.start_world()
+    swarm.wait_tracking(READY_TIMEOUT_S)
+    return swarm
+
+
+@pytest.mark.timeout(420)
+def test_one_vehicle_takes_off_flies_to_its_goal_and_lands(autopilot, tmp_path):
+    kind, binary = autopilot
+    goal = np.array([15.0, 0.0, -8.0])
+    with _single(kind, binary, tmp_path) as swarm:
+        swarm.start_companion(0, "--goal", "15,0,-8", "--land-on-arrival", "--exit-on-arrival", takeoff_m=8.0)
+        proc = swarm.procs.procs["companion_0"]
+        deadline = time.monotonic() + 240
+        while proc.poll() is None and time.monotonic() < deadline:
+            swarm.check_alive(allowed=("companion_0",))
+            time.sleep(0.5)
+        time.sleep(2.0)  # the disarm reaches the world's trace
+        trace = swarm.trace()
+        phases = [p["to"] for p in swarm.phases(0) if p.get("to")]
+    assert proc.returncode == 0, f"companion exit {proc.returncode}; phases {phases}; logs in {tmp_path}"
+    assert "taking_off" in phases and "flying_to_goal" in phases and phases[-1] == "landed", phases
+    pos = trace.pos[:, 0]
+    assert np.nanmin(pos[:, 2]) < -7.0, "it never reached the take-off altitude"
+    assert np.linalg.norm(pos[-1, :2] - goal[:2]) < 1.5, f"landed at {pos[-1]}, goal {goal}"
+    assert pos[-1, 2] > -0.5 and trace.armed[-1][0] is False, (pos[-1], trace.armed[-1])
+
+
+@pytest.mark.timeout(600)
+def test_a_circle_of_four_through_the_world_arrives_without_collisions(autopilot, tmp_path):
+    kind, binary = autopilot
+    summary = fly_circle(kind, binary, 4, tmp_path, radius_m=10.0, altitude_m=8.0, rotation_deg=22.5,
+                         time_limit_s=60.0, ready_timeout_s=READY_TIMEOUT_S, status=lambda _text: None)
+    assert summary["arrived"] == 4, summary
+    assert summary["collisions"] == 0, summary
+    assert summary["world_skipped_frames"] == 0 or summary["world_skipped_frames"] < 30, summary
+
+
+@pytest.mark.timeout(420)
+def test_sigterm_stops_the_vehicle_within_the_documented_distance(autopilot, tmp_path):
+    kind, binary = autopilot
+    result = fly_and_stop(kind, binary, tmp_path, signal.SIGTERM, ready_timeout_s=READY_TIMEOUT_S,
+                          status=lambda _text: None)
+    assert result["companion_exit"] == 0, result
+    assert result["stop_distance_m"] <= SIGTERM_STOP_M, result
+    assert not result["still_moving_at_end"], result
+
+
+@pytest.mark.timeout(420)
+def test_sigkill_the_autopilots_failsafe_stops_the_vehicle(autopilot, tmp_path):
+    kind, binary = autopilot
+    result = fly_and_stop(kind, binary, tmp_path, signal.SIGKILL, ready_timeout_s=READY_TIMEOUT_S,
+                          params=COMPANION_LOSS_PARAMS[kind], status=lambda _text: None)
+    assert result["stop_distance_m"] <= SIGKILL_STOP_M, result
+    assert not result["still_moving_at_end"], result
+    assert result["climb_m"] < 2.0, f"a failsafe that climbs (RTL?): {result}"
+
+
+@pytest.mark.timeout(420)
+def test_a_mode_switch_hands_the_vehicle_back(autopilot, tmp_path):
+    kind, binary = autopilot
+    hold = HOLD_MODES[kind]
+    with _single(kind, binary, tmp_path) as swarm:
+        swarm.start_companion(0, "--goal", "30,0,-8", takeoff_m=8.0)
+        swarm.wait_phase([0], "flying_to_goal", READY_TIMEOUT_S)
+        time.sleep(3.0)  # on its way
+        t_switch = time.time()
+        for _ in range(3):
+            swarm.set_mode(0, hold)
+            time.sleep(0.3)
+        swarm.wait_phase([0], "handed_back", 15.0)
+        time.sleep(6.0)
+        after = swarm.trace().since(t_switch + 4.0)
+        alive = swarm.procs.procs["companion_0"].poll() is None
+    modes = {m[0] for m in after.mode}
+    assert modes == {hold}, f"the vehicle should stay in {hold} (nobody asks for it back), got {modes}"
+    assert alive, "without --exit-on-arrival the companion stays up after a hand-back"
+    speed = np.linalg.norm(after.vel[:, 0, :2], axis=1)
+    assert np.nanmax(speed) < 0.5, f"still moving in {hold}: {np.nanmax(speed):.2f} m/s"
+    assert np.nanmax(after.pos[:, 0, 2]) < -6.0, "it should hold its altitude, not sink"
+
+
+@pytest.mark.timeout(420)
+def test_exit_on_arrival_leaves_the_vehicle_in_a_hold_mode_not_a_failsafe(autopilot, tmp_path):
+    kind, binary = autopilot
+    goal = np.array([12.0, 0.0, -8.0])
+    with _single(kind, binary, tmp_path) as swarm:
+        swarm.start_companion(0, "--goal", "12,0,-8", "--exit-on-arrival", takeoff_m=8.0)
+        proc = swarm.procs.procs["companion_0"]
+        deadline = time.monotonic() + 240
+        while proc.poll() is None and time.monotonic() < deadline:
+            swarm.check_alive(allowed=("companion_0",))
+            time.sleep(0.5)
+        t_exit = time.time()
+        time.sleep(8.0)  # PX4's offboard-loss failsafe would have struck after COM_OF_LOSS_T (1 s)
+        after = swarm.trace().since(t_exit + 1.0)
+    assert proc.returncode == 0, f"companion exit {proc.returncode}; logs in {tmp_path}"
+    modes = {m[0] for m in after.mode}
+    assert modes == {HOLD_MODES[kind]}, f"expected the vehicle left in {HOLD_MODES[kind]}, got {modes}"
+    assert all(a[0] for a in after.armed), "still flying"
+    err = np.linalg.norm(after.pos[:, 0] - goal, axis=1)
+    assert np.nanmax(err) < 1.5, f"it should hold near the goal: up to {np.nanmax(err):.2f} m away"
