@@ -85,7 +85,6 @@ def test_a_circle_of_four_through_the_world_arrives_without_collisions(autopilot
                          time_limit_s=60.0, ready_timeout_s=READY_TIMEOUT_S, status=lambda _text: None)
     assert summary["arrived"] == 4, summary
     assert summary["collisions"] == 0, summary
-    assert summary["world_skipped_frames"] == 0 or summary["world_skipped_frames"] < 30, summary
 
 
 @pytest.mark.timeout(420)
