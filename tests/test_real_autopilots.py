@@ -95,6 +95,9 @@ def test_sigterm_stops_the_vehicle_within_the_documented_distance(autopilot, tmp
     assert result["companion_exit"] == 0, result
     assert result["stop_distance_m"] <= SIGTERM_STOP_M, result
     assert not result["still_moving_at_end"], result
+    # Stopped on purpose: handed to the autopilot's hold mode, never a failsafe (issue 18, item 8).
+    assert result["modes_after"][-1] == HOLD_MODES[kind], result
+    assert result["moved_after_stop_m"] < 1.5, result
 
 
 @pytest.mark.timeout(420)
@@ -105,6 +108,7 @@ def test_sigkill_the_autopilots_failsafe_stops_the_vehicle(autopilot, tmp_path):
     assert result["stop_distance_m"] <= SIGKILL_STOP_M, result
     assert not result["still_moving_at_end"], result
     assert result["climb_m"] < 2.0, f"a failsafe that climbs (RTL?): {result}"
+    assert not {"RTL", "AUTO.RTL"} & set(result["modes_after"]), result
 
 
 @pytest.mark.timeout(420)

@@ -59,6 +59,7 @@ DEFAULT_HOME = {ARDUCOPTER: (-35.363261, 149.165230, 584.0), PX4: (47.397742, 8.
 PX4_SIH_AUTOSTART = "10040"  # sihsim_quadx
 MAV_COMP_ID_ONBOARD_COMPUTER = 191  # the companion's component id: goals go there
 POSITION_MASK = 0b110111111000  # SET_POSITION_TARGET_LOCAL_NED: position only
+STOPPED_MPS = 0.3  # horizontal speed under which a vehicle counts as stopped
 GCS_SYSID = 245  # this module's ground-station link (the world is 250)
 DEFAULT_POLICY = Path(__file__).resolve().parents[2] / "models" / "policy.pt"
 
@@ -495,16 +496,17 @@ def fly_and_stop(kind: str, binary: Path, out: Path, sig: int, distance_m: float
         exit_code = swarm.procs.procs["companion_0"].poll()
     horizontal = np.linalg.norm(tr.pos[:, 0, :2] - pos_sig[:2], axis=1)
     speed = np.linalg.norm(tr.vel[:, 0, :2], axis=1)
-    moving = np.flatnonzero(speed > 0.2)
-    stop_k = (moving[-1] + 1) if moving.size else 0
-    stop_k = min(stop_k, len(tr.t) - 1)
+    slow = np.flatnonzero(speed < STOPPED_MPS)
+    stop_k = int(slow[0]) if slow.size else len(tr.t) - 1  # the first moment it had stopped
+    drift = np.linalg.norm(tr.pos[stop_k:, 0, :2] - tr.pos[stop_k, 0, :2], axis=1)
     return {
         "autopilot": kind, "signal": signal.Signals(sig).name, "speed_at_signal_mps": round(speed_sig, 2),
-        "stop_distance_m": round(float(np.nanmax(horizontal)), 2),
-        "stopped_after_s": round(float(tr.t[stop_k] - t_sig), 2), "still_moving_at_end": bool(speed[-1] > 0.2),
+        "stop_distance_m": round(float(np.nanmax(horizontal[:stop_k + 1])), 2),
+        "stopped_after_s": round(float(tr.t[stop_k] - t_sig), 2) if slow.size else None,
+        "moved_after_stop_m": round(float(np.nanmax(drift)), 2), "still_moving_at_end": bool(speed[-1] > STOPPED_MPS),
         "climb_m": round(float(-(np.nanmin(tr.pos[:, 0, 2]) - pos_sig[2])), 2),
         "modes_after": list(dict.fromkeys(m[0] for m in tr.mode)), "companion_exit": exit_code,
-        "params": params or {},
+        "params": params or {}, "watch_s": watch_s,
     }
 
 
