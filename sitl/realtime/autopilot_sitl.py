@@ -59,7 +59,7 @@ DEFAULT_HOME = {ARDUCOPTER: (-35.363261, 149.165230, 584.0), PX4: (47.397742, 8.
 PX4_SIH_AUTOSTART = "10040"  # sihsim_quadx
 MAV_COMP_ID_ONBOARD_COMPUTER = 191  # the companion's component id: goals go there
 POSITION_MASK = 0b110111111000  # SET_POSITION_TARGET_LOCAL_NED: position only
-STOPPED_MPS = 0.3  # horizontal speed under which a vehicle counts as stopped
+STOPPED_MPS = 0.5  # horizontal speed under which a vehicle counts as stopped (PX4 Hold jitters at 0.1-0.45 m/s)
 GCS_SYSID = 245  # this module's ground-station link (the world is 250)
 DEFAULT_POLICY = Path(__file__).resolve().parents[2] / "models" / "policy.pt"
 
