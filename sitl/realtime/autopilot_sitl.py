@@ -137,7 +137,7 @@ class RealSwarm:
         spawns_ne: [n, 2] each vehicle's home, north/east metres from ``home``.
         out: the run's folder (logs, traces, the instances' working directories).
         home: latitude, longitude deg, altitude m of the point ``spawns_ne`` are relative to.
-        params: autopilot parameters set before flight (ArduPilot: a defaults file; PX4: ``param set``).
+        params: autopilot parameters set at boot (ArduPilot: a defaults file; PX4: ``PX4_PARAM_<NAME>``).
         camera_hz: the world's camera rate.
     """
 
@@ -206,6 +206,8 @@ class RealSwarm:
                 env = {"PX4_SYS_AUTOSTART": PX4_SIH_AUTOSTART, "PX4_SIM_MODEL": "sihsim_quadx",
                        "PX4_SIMULATOR": "sihsim", "PX4_HOME_LAT": f"{lat:.8f}", "PX4_HOME_LON": f"{lon:.8f}",
                        "PX4_HOME_ALT": f"{alt:.1f}"}
+                # rcS sets PX4_PARAM_<NAME>=<value> as parameters at boot, before the modules start
+                env.update({f"PX4_PARAM_{name}": f"{value:g}" for name, value in self.params.items()})
                 etc = self.binary.resolve().parent.parent / "etc"
                 argv = [str(self.binary), "-d", "-i", str(i), "-w", str(folder), str(etc)]
                 self._start(f"autopilot_{i}", argv, env=env)
@@ -217,15 +219,6 @@ class RealSwarm:
         argv = [sys.executable, "-m", "sitl.world", *self.world_source(), "--log", str(self.world_log),
                 "--trace", str(self.trace_path), "--camera-hz", f"{self.camera_hz:g}", *extra]
         self.procs.start("world", argv, self.out / "world.out")
-
-    def set_px4_params(self) -> None:
-        """``param set`` each of ``params`` on every PX4 instance (its ``px4-param`` client)."""
-        client = self.binary.parent / "px4-param"
-        for i in range(self.n):
-            for name, value in self.params.items():
-                subprocess.run([str(client), "--instance", str(i), "set", name, f"{value:g}"], check=False,
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, timeout=10,
-                               cwd=self.out / f"{self.kind}_{i}")
 
     def wait_tracking(self, timeout_s: float, origin_wait_s: float = 12.0) -> np.ndarray:
         """Until the world draws every vehicle (the autopilots' estimators have a position and an
@@ -404,9 +397,6 @@ def fly_circle(kind: str, binary: Path, n: int, out: Path, radius_m: float = 12.
     with RealSwarm(kind, binary, spawns_rel, out, params=params) as swarm:
         swarm.start_autopilots()
         swarm.start_world()
-        if kind == PX4 and params:
-            time.sleep(5.0)
-            swarm.set_px4_params()
         offsets = swarm.wait_tracking(ready_timeout_s)
         status(f"{kind}: world tracks all {n} after {time.monotonic() - started:.0f} s; starting companions")
         for i in range(n):
@@ -472,9 +462,6 @@ def fly_and_stop(kind: str, binary: Path, out: Path, sig: int, distance_m: float
     with RealSwarm(kind, binary, np.zeros((1, 2)), out, params=params) as swarm:
         swarm.start_autopilots()
         swarm.start_world()
-        if kind == PX4 and params:
-            time.sleep(5.0)
-            swarm.set_px4_params()
         swarm.wait_tracking(ready_timeout_s)
         swarm.start_companion(0, "--goal", ",".join(f"{c:g}" for c in goal), takeoff_m=altitude_m)
         swarm.wait_phase([0], "flying_to_goal", ready_timeout_s)
