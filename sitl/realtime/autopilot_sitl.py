@@ -42,7 +42,6 @@ import numpy as np
 from companion.flight_modes import (ARDUCOPTER_MODE_BY_NAME, PX4_MODE_BY_NAME)
 from companion.spec import DEFAULT_TASK_SPEC
 from sitl.realtime.depth_bridge import ned_offset_m, shift_global
-from sitl.realtime.depth_transport import DEPTH_BASE_PORT
 from sitl.realtime.mavlink_swarm import JsonLinesTail, ProcessGroup, _die_with_parent, companion_command
 
 from pymavlink import mavutil  # noqa: E402  (after companion: MAVLink 2)
@@ -61,6 +60,9 @@ MAV_COMP_ID_ONBOARD_COMPUTER = 191  # the companion's component id: goals go the
 POSITION_MASK = 0b110111111000  # SET_POSITION_TARGET_LOCAL_NED: position only
 STOPPED_MPS = 0.5  # horizontal speed under which a vehicle counts as stopped (PX4 Hold jitters at 0.1-0.45 m/s)
 GCS_SYSID = 245  # this module's ground-station link (the world is 250)
+#: Vehicle i's depth frames go to this + i: not sitl.world's default (14640), where any other
+#: sitl.vehicle or sitl.world on the machine sends its frames (a companion fed another's frames flies blind).
+DEPTH_PORT_BASE = 24640
 DEFAULT_POLICY = Path(__file__).resolve().parents[2] / "models" / "policy.pt"
 
 
@@ -217,6 +219,7 @@ class RealSwarm:
 
     def start_world(self, *extra: str) -> None:
         argv = [sys.executable, "-m", "sitl.world", *self.world_source(), "--log", str(self.world_log),
+                "--depth-port", str(DEPTH_PORT_BASE),
                 "--trace", str(self.trace_path), "--camera-hz", f"{self.camera_hz:g}", *extra]
         self.procs.start("world", argv, self.out / "world.out")
 
@@ -264,7 +267,7 @@ class RealSwarm:
 
     def start_companion(self, i: int, *extra: str, takeoff_m: float = 8.0, policy: Path = DEFAULT_POLICY) -> None:
         argv = [*companion_command(), "--connect", self.companion_connection(i), "--camera",
-                f"sitl:{DEPTH_BASE_PORT + i}", "--model", str(policy), "--arm", "--takeoff", f"{takeoff_m:g}",
+                f"sitl:{DEPTH_PORT_BASE + i}", "--model", str(policy), "--arm", "--takeoff", f"{takeoff_m:g}",
                 "--heartbeat-timeout", "60", "--log", str(self.companion_log(i)), *extra]
         self.procs.start(f"companion_{i}", argv, self.out / f"companion_{i}.out")
 
