@@ -32,6 +32,10 @@ SIGKILL_STOP_M = 4.0  # ... and after SIGKILL, with the recommended failsafe par
 #: The autopilot parameters docs/real_autopilots.md recommends for a companion that dies.
 COMPANION_LOSS_PARAMS = {ARDUCOPTER: {"GUID_TIMEOUT": 0.5}, PX4: {"COM_OF_LOSS_T": 0.5, "COM_OBL_RC_ACT": 5}}
 HOLD_MODES = {ARDUCOPTER: "BRAKE", PX4: "AUTO.LOITER"}  # what the pilot switches to in the hand-back test
+FAILSAFE_MODES = {"RTL", "AUTO.RTL", "LAND", "AUTO.LAND", "SMART_RTL"}
+# Modes are asserted as "seen / never seen", not "only": real PX4 SIH sends two HEARTBEAT streams
+# from (1, 1) on its ground-station link, one of them stuck at AUTO.LOITER (docs/real_autopilots.md);
+# positions and speeds carry the weight.
 READY_TIMEOUT_S = 240.0
 
 
@@ -75,7 +79,7 @@ def test_one_vehicle_takes_off_flies_to_its_goal_and_lands(autopilot, tmp_path):
     pos = trace.pos[:, 0]
     assert np.nanmin(pos[:, 2]) < -7.0, "it never reached the take-off altitude"
     assert np.linalg.norm(pos[-1, :2] - goal[:2]) < 1.5, f"landed at {pos[-1]}, goal {goal}"
-    assert pos[-1, 2] > -0.5 and trace.armed[-1][0] is False, (pos[-1], trace.armed[-1])
+    assert pos[-1, 2] > -0.5, pos[-1]  # on the ground; "landed" above is the companion seeing it disarmed
 
 
 @pytest.mark.timeout(600)
@@ -96,7 +100,7 @@ def test_sigterm_stops_the_vehicle_within_the_documented_distance(autopilot, tmp
     assert result["stop_distance_m"] <= SIGTERM_STOP_M, result
     assert not result["still_moving_at_end"], result
     # Stopped on purpose: handed to the autopilot's hold mode, never a failsafe (issue 18, item 8).
-    assert result["modes_after"][-1] == HOLD_MODES[kind], result
+    assert HOLD_MODES[kind] in result["modes_after"] and not FAILSAFE_MODES & set(result["modes_after"]), result
     assert result["moved_after_stop_m"] < 1.5, result
 
 
@@ -108,7 +112,7 @@ def test_sigkill_the_autopilots_failsafe_stops_the_vehicle(autopilot, tmp_path):
     assert result["stop_distance_m"] <= SIGKILL_STOP_M, result
     assert not result["still_moving_at_end"], result
     assert result["climb_m"] < 2.0, f"a failsafe that climbs (RTL?): {result}"
-    assert not {"RTL", "AUTO.RTL"} & set(result["modes_after"]), result
+    assert not FAILSAFE_MODES & set(result["modes_after"]), result
 
 
 @pytest.mark.timeout(420)
@@ -128,7 +132,8 @@ def test_a_mode_switch_hands_the_vehicle_back(autopilot, tmp_path):
         after = swarm.trace().since(t_switch + 4.0)
         alive = swarm.procs.procs["companion_0"].poll() is None
     modes = {m[0] for m in after.mode}
-    assert modes == {hold}, f"the vehicle should stay in {hold} (nobody asks for it back), got {modes}"
+    assert hold in modes and not ({"GUIDED", "OFFBOARD"} | FAILSAFE_MODES) & modes, \
+        f"the vehicle should stay in {hold} (nobody asks for it back), got {modes}"
     assert alive, "without --exit-on-arrival the companion stays up after a hand-back"
     speed = np.linalg.norm(after.vel[:, 0, :2], axis=1)
     assert np.nanmax(speed) < 0.5, f"still moving in {hold}: {np.nanmax(speed):.2f} m/s"
@@ -151,7 +156,8 @@ def test_exit_on_arrival_leaves_the_vehicle_in_a_hold_mode_not_a_failsafe(autopi
         after = swarm.trace().since(t_exit + 1.0)
     assert proc.returncode == 0, f"companion exit {proc.returncode}; logs in {tmp_path}"
     modes = {m[0] for m in after.mode}
-    assert modes == {HOLD_MODES[kind]}, f"expected the vehicle left in {HOLD_MODES[kind]}, got {modes}"
-    assert all(a[0] for a in after.armed), "still flying"
+    assert HOLD_MODES[kind] in modes and not ({"GUIDED", "OFFBOARD"} | FAILSAFE_MODES) & modes, \
+        f"expected the vehicle left in {HOLD_MODES[kind]}, got {modes}"
+    assert np.nanmax(after.pos[:, 0, 2]) < -6.0, "it should hover at the goal's altitude"
     err = np.linalg.norm(after.pos[:, 0] - goal, axis=1)
     assert np.nanmax(err) < 1.5, f"it should hold near the goal: up to {np.nanmax(err):.2f} m away"

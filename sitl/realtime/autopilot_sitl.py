@@ -267,7 +267,7 @@ class RealSwarm:
 
     def start_companion(self, i: int, *extra: str, takeoff_m: float = 8.0, policy: Path = DEFAULT_POLICY) -> None:
         argv = [*companion_command(), "--connect", self.companion_connection(i), "--camera",
-                f"sitl:{DEPTH_PORT_BASE + i}", "--model", str(policy), "--arm", "--takeoff", f"{takeoff_m:g}",
+                f"sitl:{DEPTH_PORT_BASE + i}:{i}", "--model", str(policy), "--arm", "--takeoff", f"{takeoff_m:g}",
                 "--heartbeat-timeout", "60", "--log", str(self.companion_log(i)), *extra]
         self.procs.start(f"companion_{i}", argv, self.out / f"companion_{i}.out")
 
