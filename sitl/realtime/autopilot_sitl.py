@@ -428,8 +428,10 @@ def fly_circle(kind: str, binary: Path, n: int, out: Path, radius_m: float = 12.
             time.sleep(0.2)
         tr = swarm.trace().since(t0)
         world_status = [r for r in JsonLinesTail(swarm.world_log).read() if r.get("event") == "world_status"]
-    return _circle_summary(kind, n, radius_m, altitude_m, rotation_deg, tr, goals, offsets, arrived_t, t0,
-                           settle_s, ready_s, world_status)
+    summary = _circle_summary(kind, n, radius_m, altitude_m, rotation_deg, tr, goals, offsets, arrived_t, t0,
+                              settle_s, ready_s, world_status)
+    write_summary(out, summary)
+    return summary
 
 
 def _circle_summary(kind, n, radius_m, altitude_m, rotation_deg, tr: PoseTrace, goals, offsets, arrived_t, t0,
@@ -489,7 +491,7 @@ def fly_and_stop(kind: str, binary: Path, out: Path, sig: int, distance_m: float
     slow = np.flatnonzero(speed < STOPPED_MPS)
     stop_k = int(slow[0]) if slow.size else len(tr.t) - 1  # the first moment it had stopped
     drift = np.linalg.norm(tr.pos[stop_k:, 0, :2] - tr.pos[stop_k, 0, :2], axis=1)
-    return {
+    summary = {
         "autopilot": kind, "signal": signal.Signals(sig).name, "speed_at_signal_mps": round(speed_sig, 2),
         "stop_distance_m": round(float(np.nanmax(horizontal[:stop_k + 1])), 2),
         "stopped_after_s": round(float(tr.t[stop_k] - t_sig), 2) if slow.size else None,
@@ -498,6 +500,8 @@ def fly_and_stop(kind: str, binary: Path, out: Path, sig: int, distance_m: float
         "modes_after": list(dict.fromkeys(m[0] for m in tr.mode)), "companion_exit": exit_code,
         "params": params or {}, "watch_s": watch_s,
     }
+    write_summary(out, summary)
+    return summary
 
 
 def write_summary(out: Path, summary: dict) -> None:
