@@ -18,14 +18,15 @@ failsafe stops it, within 4 m with the parameters the docs recommend (ArduPilot
 
 from __future__ import annotations
 
+import os
 import signal
 import time
 
 import numpy as np
 import pytest
 
-from sitl.realtime.autopilot_sitl import (ARDUCOPTER, KINDS, PX4, RealSwarm, fly_and_stop, fly_circle,
-                                          find_autopilot)
+from sitl.realtime.autopilot_sitl import (ARDUCOPTER, KINDS, PX4, RealSwarm, circle_layout, find_autopilot,
+                                          fly_and_stop, fly_circle, pairwise_min_distance)
 
 SIGTERM_STOP_M = 2.0  # docs/real_autopilots.md: a SIGTERM'd companion's vehicle stops within this
 SIGKILL_STOP_M = 4.0  # ... and after SIGKILL, with the recommended failsafe parameters
@@ -161,3 +162,37 @@ def test_exit_on_arrival_leaves_the_vehicle_in_a_hold_mode_not_a_failsafe(autopi
     assert np.nanmax(after.pos[:, 0, 2]) < -6.0, "it should hover at the goal's altitude"
     err = np.linalg.norm(after.pos[:, 0] - goal, axis=1)
     assert np.nanmax(err) < 1.5, f"it should hold near the goal: up to {np.nanmax(err):.2f} m away"
+
+
+# --------------------------------------------------------------------------- without binaries (CI)
+
+
+def test_find_autopilot_names_the_binary_or_says_why_not(tmp_path, monkeypatch):
+    fake = tmp_path / "arducopter"
+    fake.write_text("#!/bin/sh\n")
+    monkeypatch.setenv("SWARMNAV_ARDUCOPTER", str(fake))
+    path, why = find_autopilot(ARDUCOPTER)
+    assert path is None and "SWARMNAV_ARDUCOPTER" in why and "not an executable" in why
+    fake.chmod(0o755)
+    assert find_autopilot(ARDUCOPTER) == (fake, "")
+
+
+def test_circle_layout_sends_every_vehicle_to_its_antipode():
+    spawns, goals = circle_layout(8, 12.0, 22.5)
+    np.testing.assert_allclose(np.linalg.norm(spawns, axis=1), 12.0)
+    np.testing.assert_allclose(goals, -spawns)
+    on_ground = np.concatenate([spawns, np.zeros((8, 1))], axis=1)[None]  # one trace sample [1, 8, 3]
+    closest, _pair = pairwise_min_distance(on_ground)
+    assert closest == pytest.approx(2 * 12.0 * np.sin(np.pi / 8))  # neighbours' chord
+
+
+def test_the_command_line_refuses_a_missing_binary_in_one_line(tmp_path):
+    import subprocess
+    import sys
+
+    env = dict(os.environ, SWARMNAV_PX4=str(tmp_path / "nothing"))
+    done = subprocess.run([sys.executable, "-m", "sitl.real_autopilots", "circle", "--autopilot", "px4", "--out",
+                           str(tmp_path / "run")], capture_output=True, text=True, env=env, timeout=60)
+    assert done.returncode == 1
+    assert done.stderr.strip().splitlines() == [f"sitl.real_autopilots: error: $SWARMNAV_PX4={tmp_path / 'nothing'} "
+                                                "is not an executable file"]
