@@ -1016,5 +1016,6 @@ class Companion:
             overruns=self.overruns, missed_ticks=self.clock.missed_ticks,
             setpoints_sent=self.link.setpoints_sent, refused_unsigned=self.link.refused_unsigned,
             dropped_foreign_address=self.link.dropped_foreign_address, dropped_foreign_link=self.link.dropped_foreign_link,
+            obstacle_distance_sent=self.obstacles.sent if self.obstacles else 0,
             phase=self.phase.value, **resident_memory_mb(),
         )
