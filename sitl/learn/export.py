@@ -99,6 +99,13 @@ def export_onnx(torchscript_path: str | Path, onnx_path: str | Path) -> float:
                           dynamic_axes={INPUT_DEPTH: {0: "batch"}, INPUT_STATE: {0: "batch"},
                                         OUTPUT_ACTION: {0: "batch"}})
     model = onnx.load_from_string(buffer.getvalue())
+    # The exporter drops an input the module never reads (a test policy that ignores depth);
+    # the contract says both are there, so put it back as an unused input.
+    declared = {i.name for i in model.graph.input}
+    for name, shape in ((INPUT_DEPTH, ["batch", cam.frames, cam.height, cam.width]), (INPUT_STATE, ["batch", STATE_DIM])):
+        if name not in declared:
+            model.graph.input.append(onnx.helper.make_tensor_value_info(name, onnx.TensorProto.FLOAT, shape))
+    model.graph.input.sort(key=lambda i: (i.name != INPUT_DEPTH, i.name != INPUT_STATE))  # depth, state
     model.doc_string = "swarmnav policy: depth (m) and state in, physical actions out (docs/policy_file.md)"
     entry = model.metadata_props.add()
     entry.key, entry.value = METADATA_KEY, json.dumps(policy.metadata, indent=2)
