@@ -29,6 +29,10 @@ action bounds. Normalisation happens inside the module, so callers pass raw metr
 a :class:`PolicyFileError` that says what is wrong. ``task`` (the collision radius, arrival
 radius and time limit the policy was trained for, :class:`companion.spec.TaskSpec`) was added
 within version 1: a file without it was trained for the defaults and reads as them.
+
+The same policy exported as ONNX (``policy.onnx``: inputs ``depth`` and ``state``, output
+``action``, ``policy.json`` in the graph's ``metadata_props``) loads through the same checks
+and runs with onnxruntime (:mod:`companion.onnx_policy`).
 """
 
 from __future__ import annotations
