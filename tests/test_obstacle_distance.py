@@ -19,7 +19,7 @@ from companion.obstacle_distance import BIN_COUNT, MIN_DISTANCE_CM, UNKNOWN_CM, 
 from companion.spec import CameraSpec
 from tests.companion_helpers import REPO, Processes, Rig
 
-CAM = CameraSpec()  # the policy camera: 32x32, 90 deg, 20 m
+CAM = CameraSpec(width=32, height=32, hfov_deg=90.0, max_range_m=20.0)  # spelled out: the bin arithmetic below is for it
 NONE_CM = 2001  # max_distance (20 m) + 1: "no obstacle"
 
 
@@ -117,10 +117,12 @@ def test_sitl_vehicle_receives_the_bins_at_the_camera_rate_and_the_option_turns_
     assert 0.85 * camera_hz <= rate <= 1.1 * camera_hz, f"OBSTACLE_DISTANCE at {rate} Hz, camera at {camera_hz} Hz"
     last = windows[-1]
     assert last["frame"] == 12 and last["angle_offset_deg"] == -42.5 and last["increment_deg"] == 5.0
-    bins = last["distances_cm"]
-    # The pole (radius 0.5 m, 10 m ahead) subtends +-2.9 deg: bins 8 (-5..0 deg) and 9 (0..5 deg), ~9.5 m.
-    assert all(900 <= bins[b] <= 1000 for b in (8, 9)), bins[:18]
-    assert [bins[b] for b in range(18) if b not in (8, 9)] == [NONE_CM] * 16  # the ground 3 m below is not an obstacle
-    assert bins[18:] == [UNKNOWN_CM] * (BIN_COUNT - 18)
+    bins, none_cm = last["distances_cm"], last["max_distance_cm"] + 1
+    fov_bins = round(-2 * last["angle_offset_deg"] / 5.0) + 1  # 18 for a 90 or 87 deg policy camera
+    centre = (fov_bins // 2 - 1, fov_bins // 2)  # the two sectors either side of the nose
+    # The pole (radius 0.5 m, 10 m ahead) subtends +-2.9 deg: the sectors -5..0 and 0..5 deg, at ~9.5 m.
+    assert all(900 <= bins[b] <= 1000 for b in centre), bins[:fov_bins]
+    assert [bins[b] for b in range(fov_bins) if b not in centre] == [none_cm] * (fov_bins - 2)  # not the ground 3 m below
+    assert bins[fov_bins:] == [UNKNOWN_CM] * (BIN_COUNT - fov_bins)
     assert [r for r in off.companion_records() if r["kind"] == "summary"][-1]["obstacle_distance_sent"] == 0
     assert not [r for r in off.vehicle_records() if r["event"] == "obstacle_distance"]

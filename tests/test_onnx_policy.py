@@ -29,7 +29,7 @@ BUNDLED_PT, BUNDLED_ONNX = REPO / "models" / "policy.pt", REPO / "models" / "pol
 
 def _simulated_observations(policy, steps: int = 40) -> tuple[np.ndarray, np.ndarray]:
     """Depth stacks and states of 8 UAVs on a 6 m circle flying towards each other, ``steps`` control periods."""
-    config = SimConfig(num_uavs=8, scenario=ScenarioConfig(name="circle", circle_radius_m=6.0))
+    config = SimConfig(num_uavs=8, scenario=ScenarioConfig(name="circle", circle_radius_m=6.0), camera=policy.camera)
     sim = SwarmEnv(config, seed=3)
     obs = sim.reset()
     depths, states = [], []
@@ -61,9 +61,11 @@ def test_export_writes_the_metadata_into_metadata_props_with_dynamic_batch(tmp_p
     props = {p.key: p.value for p in model.metadata_props}
     assert json.loads(props[METADATA_KEY]) == load_policy(BUNDLED_PT).metadata
     assert [i.name for i in model.graph.input] == ["depth", "state"] and [o.name for o in model.graph.output] == ["action"]
+    cam = load_policy(BUNDLED_PT).camera
     depth_dims = [d.dim_param or d.dim_value for d in model.graph.input[0].type.tensor_type.shape.dim]
-    assert depth_dims == ["batch", 3, 32, 32]
-    batch = load_policy(out).act(np.full((5, 3, 32, 32), 7.0, np.float32), np.zeros((5, 6), np.float32))
+    assert depth_dims == ["batch", cam.frames, cam.height, cam.width]
+    batch = load_policy(out).act(np.full((5, cam.frames, cam.height, cam.width), 7.0, np.float32),
+                                 np.zeros((5, 6), np.float32))
     assert batch.shape == (5, 3)
 
 
@@ -92,11 +94,15 @@ def test_loading_refuses_non_policy_onnx_files_with_one_line_reasons(tmp_path):
     with pytest.raises(PolicyFileError, match="no policy.json inside"):
         load_policy(tmp_path / "bare.onnx")
     meta = load_policy(BUNDLED_PT).metadata
-    meta["depth"]["width"] = 64
+    depth = meta["depth"]
+    graph_shape = f"{depth['frames']}, {depth['height']}, {depth['width']}"
+    depth["width"] *= 2
     entry = model.metadata_props.add()
     entry.key, entry.value = METADATA_KEY, json.dumps(meta)
     onnx.save(model, str(tmp_path / "wide.onnx"))
-    with pytest.raises(PolicyFileError, match=r"ONNX input 'depth' has shape \[.*32, 32\], policy.json says \['B', 3, 32, 64\]"):
+    expected = (rf"ONNX input 'depth' has shape \['batch', {graph_shape}\], "
+                rf"policy.json says \['B', {depth['frames']}, {depth['height']}, {depth['width']}\]")
+    with pytest.raises(PolicyFileError, match=expected):
         load_policy(tmp_path / "wide.onnx")
 
 

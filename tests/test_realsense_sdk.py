@@ -143,7 +143,8 @@ def test_injected_z16_frames_become_the_policys_depth_through_the_sdk():
 
 def test_a_policy_wider_than_the_sensor_is_refused_at_start_with_the_reason():
     camera = SoftwareCamera()
-    source = RealSenseDepthSource(CameraSpec(), device=camera.stream())  # 90 x 90 deg: wider than 87 x 58
+    wide = CameraSpec(width=32, height=32, hfov_deg=90.0)  # 90 x 90 deg: wider than the sensor's 87 x 58
+    source = RealSenseDepthSource(wide, device=camera.stream())
     with pytest.raises(DepthSourceError, match=r"does not cover the policy's 90.0 deg") as info:
         source.start()
     assert "\n" not in str(info.value)

@@ -65,13 +65,21 @@ def export_policy(agent, path: str | Path, control_period_s: float, provenance: 
                   task: TaskSpec = DEFAULT_TASK_SPEC, onnx: bool = True) -> None:
     """Write ``path`` as a TorchScript policy with ``policy.json`` metadata (``task``: what it was trained for).
 
-    With ``onnx`` the same policy is also written beside it as ``<stem>.onnx`` (:func:`export_onnx`).
+    With ``onnx`` the same policy is also written beside it as ``<stem>.onnx`` (:func:`export_onnx`);
+    without the ``onnx`` package that step is skipped with a note on stderr (a finished training run
+    is never lost to a missing export dependency: ``python -m sitl.learn.export`` converts it later).
     """
     module = ExportedPolicy(agent).eval()
     metadata = build_metadata(agent.camera, agent.action_spec, control_period_s,
                               {"git_commit": git_commit(), **provenance}, task)
     save_policy(module, metadata, path)
     if onnx:
+        try:
+            import onnx as _onnx  # noqa: F401, PLC0415 - only to know whether the export can run
+        except ImportError:
+            print(f"note: {path} written; no ONNX twin (the onnx package is missing: pip install "
+                  "'swarmnav[train]', then python -m sitl.learn.export)", file=sys.stderr)
+            return
         export_onnx(path, Path(path).with_suffix(".onnx"))
 
 
