@@ -124,3 +124,19 @@ def test_loading_torchscript_prints_no_deprecation_warning():
     done = subprocess.run([sys.executable, "-W", "always", "-c", code], cwd=REPO, env=env(), capture_output=True,
                           text=True, timeout=120)
     assert done.returncode == 0 and "Deprecat" not in done.stderr, done.stderr
+
+
+def test_the_training_export_writes_both_formats_with_the_same_actions(tmp_path):
+    import torch
+
+    from companion.spec import DEFAULT_ACTION_SPEC, CameraSpec
+    from sitl.learn.agent import AgentConfig, SacAeAgent
+    from sitl.learn.export import check_observations, export_policy
+
+    torch.manual_seed(0)
+    agent = SacAeAgent(AgentConfig(hidden_dim=32), CameraSpec(width=16, height=16), DEFAULT_ACTION_SPEC)
+    export_policy(agent, tmp_path / "policy.pt", 0.1, {"method": "sac_ae", "note": "untrained test policy"})
+    reference, exported = load_policy(tmp_path / "policy.pt"), load_policy(tmp_path / "policy.onnx")
+    depth, state = check_observations(3, 16, 16, reference.camera.max_range_m, seed=7)
+    assert float(np.max(np.abs(exported.act(depth, state) - reference.act(depth, state)))) <= ONNX_TOLERANCE
+    assert exported.metadata == reference.metadata
