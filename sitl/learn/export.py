@@ -100,7 +100,9 @@ def export_onnx(torchscript_path: str | Path, onnx_path: str | Path) -> float:
     with warnings.catch_warnings():
         # The TorchScript-based exporter is the one that takes a TorchScript module (the file we
         # fly); torch >= 2.9 marks it deprecated and warns about the scripted method's signature.
-        warnings.filterwarnings("ignore", category=DeprecationWarning)
+        for message in (r"You are using the legacy TorchScript-based ONNX export", r".*torch\.jit",
+                        r"The feature will be removed"):  # the last: the legacy exporter's own logging helper
+            warnings.filterwarnings("ignore", category=DeprecationWarning, message=message)
         warnings.filterwarnings("ignore", category=UserWarning, message=r"no signature found")
         torch.onnx.export(policy.module, example, buffer, input_names=[INPUT_DEPTH, INPUT_STATE],
                           output_names=[OUTPUT_ACTION], opset_version=ONNX_OPSET, dynamo=False,
