@@ -54,24 +54,27 @@ class SoftwareCamera:
         stream.intrinsics = intr
         self.profile = self.sensor.add_video_stream(stream)
         self.sensor.add_read_only_option(rs.option.depth_units, DEPTH_UNITS_M)
-        self.frames: list[np.ndarray] = []
+        self.current: np.ndarray | None = None  # the scene the feeder thread injects
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
     def stream(self) -> RealSenseSensorStream:
         return RealSenseSensorStream(self.sensor, self.profile)
 
-    def play(self, frames: list[np.ndarray]) -> None:
-        """Inject ``frames`` (uint16 [H, W]) at the stream's rate, from a thread, as the camera would."""
+    def play(self, pixels: np.ndarray) -> None:
+        """Inject ``pixels`` (uint16 [H, W]) at the stream's rate from a thread, as the camera would, until
+        :meth:`stop`; assigning :attr:`current` changes the scene."""
+        self.current = pixels
+
         def run() -> None:
             vsp = self.profile.as_video_stream_profile()
-            for number, pixels in enumerate(frames):
-                if self._stop.is_set():
-                    return
+            number = 0
+            while not self._stop.is_set():
+                number += 1
                 frame = rs.software_video_frame()
-                frame.pixels, frame.stride, frame.bpp = np.ascontiguousarray(pixels), W * 2, 2
+                frame.pixels, frame.stride, frame.bpp = np.ascontiguousarray(self.current), W * 2, 2
                 frame.timestamp, frame.domain = time.time() * 1000.0, rs.timestamp_domain.hardware_clock
-                frame.frame_number, frame.profile = number + 1, vsp
+                frame.frame_number, frame.profile = number, vsp
                 self.sensor.on_video_frame(frame)
                 time.sleep(1.0 / FPS)
         self._thread = threading.Thread(target=run, daemon=True)
@@ -97,10 +100,11 @@ def _scene() -> np.ndarray:
     return z16
 
 
-def _collect(source: RealSenseDepthSource, count: int, timeout_s: float = 10.0) -> list:
+def _collect(source: RealSenseDepthSource, done, timeout_s: float = 30.0) -> list:
+    """What the source delivers until ``done(items)`` is true (the source keeps only the newest frame)."""
     items: list = []
     deadline = time.monotonic() + timeout_s
-    while len(items) < count and time.monotonic() < deadline:
+    while not done(items) and time.monotonic() < deadline:
         select.select([source.fileno()], [], [], 0.2)
         items.extend(source.poll(time.monotonic()))
     return items
@@ -113,15 +117,15 @@ def test_injected_z16_frames_become_the_policys_depth_through_the_sdk():
     try:
         assert source.depth_scale_m == pytest.approx(DEPTH_UNITS_M)
         assert source.hfov_deg == pytest.approx(HFOV_DEG, abs=0.2)
-        scene = _scene()
-        covered = np.zeros((H, W), np.uint16)  # a covered lens: no pixel has data
-        camera.play([scene] * 10 + [covered] * 5)
-        items = _collect(source, 12)
+        camera.play(_scene())
+        items = _collect(source, lambda got: sum(isinstance(i, DepthFrame) for i in got) >= 5)
+        camera.current = np.zeros((H, W), np.uint16)  # a covered lens: no pixel has data
+        after = _collect(source, lambda got: any(isinstance(i, DepthFault) for i in got))
     finally:
         camera.stop()
         source.close()
     frames = [i for i in items if isinstance(i, DepthFrame)]
-    faults = [i for i in items if isinstance(i, DepthFault)]
+    faults = [i for i in after if isinstance(i, DepthFault)]
     assert len(frames) >= 5, f"{len(frames)} frames came through the SDK: {items[:3]}"
     seqs = [f.seq for f in frames]
     assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)  # the SDK's frame numbers, in order
