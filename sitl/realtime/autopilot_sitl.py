@@ -63,6 +63,11 @@ GCS_SYSID = 245  # this module's ground-station link (the world is 250)
 #: Vehicle i's depth frames go to this + i: not sitl.world's default (14640), where any other
 #: sitl.vehicle or sitl.world on the machine sends its frames (a companion fed another's frames flies blind).
 DEPTH_PORT_BASE = 24640
+#: PX4: each instance gets a second ground-station link (local UDP 18600 + i) sending here, where the
+#: world listens: PX4's own GCS link goes to 14550, where every simulator on the machine sends by default
+#: (another process's PX4-flavoured stand-in with system id 1 would be taken for instance 0).
+PX4_WORLD_GCS_PORT = 24550
+PX4_EXTRA_LINK_BASE = 18600
 DEFAULT_POLICY = Path(__file__).resolve().parents[2] / "models" / "policy.pt"
 
 
@@ -170,7 +175,7 @@ class RealSwarm:
     def world_source(self) -> list[str]:
         if self.kind == ARDUCOPTER:
             return [a for i in range(self.n) for a in ("--connect", f"tcp:127.0.0.1:{5760 + 10 * i}")]
-        return ["--px4", str(self.n)]
+        return ["--px4", str(self.n), "--gcs-port", str(PX4_WORLD_GCS_PORT), "--gcs-host", "127.0.0.1"]
 
     def gcs_connection(self, i: int) -> str:
         return f"tcp:127.0.0.1:{5763 + 10 * i}" if self.kind == ARDUCOPTER else f"udpin:127.0.0.1:{14030 + i}"
@@ -217,7 +222,28 @@ class RealSwarm:
     def _start(self, name: str, argv: list[str], cwd: Path | None = None, env: dict | None = None) -> None:
         self.procs.start(name, argv, self.out / f"{name}.out", cwd=cwd, env=env)
 
+    def add_px4_world_links(self, timeout_s: float = 60.0) -> None:
+        """PX4: start a ground-station link on every instance to :data:`PX4_WORLD_GCS_PORT` (its
+        ``px4-mavlink`` client; retried until the instance's server is up)."""
+        client = self.binary.parent / "px4-mavlink"
+        deadline = time.monotonic() + timeout_s
+        for i in range(self.n):
+            while True:
+                done = subprocess.run([str(client), "--instance", str(i), "start", "-u", str(PX4_EXTRA_LINK_BASE + i),
+                                       "-o", str(PX4_WORLD_GCS_PORT), "-r", "4000000"], capture_output=True,
+                                      text=True, timeout=10, cwd=self.out / f"{self.kind}_{i}")
+                if done.returncode == 0:
+                    break
+                if time.monotonic() > deadline:
+                    raise SitlError(f"PX4 instance {i} refused a second MAVLink link: "
+                                    f"{(done.stdout + done.stderr).strip()[-300:]}")
+                self.check_alive()
+                time.sleep(1.0)
+
     def start_world(self, *extra: str) -> None:
+        """``python -m sitl.world`` on every vehicle's telemetry, with ``--trace`` (PX4: on the links it adds first)."""
+        if self.kind == PX4:
+            self.add_px4_world_links()
         argv = [sys.executable, "-m", "sitl.world", *self.world_source(), "--log", str(self.world_log),
                 "--depth-port", str(DEPTH_PORT_BASE),
                 "--trace", str(self.trace_path), "--camera-hz", f"{self.camera_hz:g}", *extra]
