@@ -121,6 +121,14 @@ class PoseTrace:
         return PoseTrace(self.t[k], self.pos[k], self.vel[k], [self.mode[i] for i in idx], [self.armed[i] for i in idx])
 
 
+def _pythonpath() -> str:
+    """This source tree first: the companions and the world run the code beside this module, not
+    whatever copy the ``companion`` console script was installed from."""
+    repo = str(Path(__file__).resolve().parents[2])
+    rest = os.environ.get("PYTHONPATH")
+    return repo + (os.pathsep + rest if rest else "")
+
+
 class Children(ProcessGroup):
     """:class:`~sitl.realtime.mavlink_swarm.ProcessGroup` with a working directory and extra environment per child."""
 
@@ -128,7 +136,8 @@ class Children(ProcessGroup):
               env: dict | None = None) -> subprocess.Popen:
         with open(out_path, "wb") as out:
             proc = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                    env=dict(os.environ, PYTHONUNBUFFERED="1", **(env or {})), cwd=cwd,
+                                    env=dict(os.environ, PYTHONUNBUFFERED="1", PYTHONPATH=_pythonpath(),
+                                             **(env or {})), cwd=cwd,
                                     start_new_session=True, preexec_fn=_die_with_parent)
         self.procs[name] = proc
         self.started_s[name] = time.monotonic()
