@@ -214,7 +214,7 @@ class RealSwarm:
                     extra = folder / "swarmnav.parm"
                     extra.write_text("".join(f"{k} {v:g}\n" for k, v in self.params.items()))
                     defaults.append(extra)
-                argv = [str(self.binary), "-w", "-S", "--model", "+", "--speedup", "1", "-I", str(i),
+                argv = [str(self.binary), "-w", "--model", "+", "--speedup", "1", "-I", str(i),
                         "--sysid", str(i + 1), "--home", f"{lat:.8f},{lon:.8f},{alt:.1f},0",
                         "--defaults", ",".join(str(d) for d in defaults)]
                 self._start(f"autopilot_{i}", argv, cwd=folder)
