@@ -284,14 +284,20 @@ def test_a_dropped_camera_frame_is_never_stacked_twice(tmp_path):
     dropped = {seq for seq in range(1, max(sent) + 1) if seq % 4 == 2}
     kinds = [s["stacked"] for s in steps]
     assert kinds.count("kept") >= 3, kinds  # misses reached the control loop
-    since_reset = 10
-    for previous, step in zip(steps, steps[1:]):
+    pushes_since_reset = 0  # a reset fills the stack with its frame, as an episode start in training
+    for previous, step in zip([None] + steps, steps):
         seqs = step["stack_seqs"]
         assert not set(seqs) & dropped
-        since_reset = 0 if step["stacked"] == "reset" else since_reset + 1
+        if step["stacked"] == "reset":
+            pushes_since_reset = 0
+        elif step["stacked"] == "pushed":
+            pushes_since_reset += 1
+        if previous is None:
+            assert step["stacked"] == "reset"  # the first policy step starts the stack
+            continue
         if step["stacked"] == "kept":
             assert seqs == previous["stack_seqs"]  # not advanced: the same real frames as before
         if step["stacked"] == "pushed":
             assert seqs[-1] > previous["stack_seqs"][-1]
-        if since_reset >= camera.frames - 1:
+        if pushes_since_reset >= camera.frames - 1:
             assert len(set(seqs)) == len(seqs), f"a frame stacked twice: {seqs}"
