@@ -124,6 +124,20 @@ def test_a_bad_negative_goal_is_still_a_one_line_error(capsys):
     assert err.count("\n") == 1 and "N,E,D" in err
 
 
+def test_a_refused_tcp_connection_is_retried_until_the_heartbeat_timeout(tmp_path):
+    """Item 3: nobody listens: the wait is logged, retried, and after --heartbeat-timeout the one-line error, exit 5."""
+    with Processes(tmp_path) as procs:
+        policy = make_policy(tmp_path / "policy.pt")
+        proc = procs.start("companion", ["-m", "companion.cli", "--connect", f"tcp:127.0.0.1:{free_tcp_port()}",
+                                         "--model", str(policy), "--camera", f"sitl:{free_udp_ports(1)[0]}",
+                                         "--heartbeat-timeout", "1.5", "--log", str(tmp_path / "c.jsonl")])
+        assert proc.wait(timeout=120) == 5
+    errors = [line for line in procs.stderr("companion").splitlines() if "error" in line]
+    assert len(errors) == 1 and "Connection refused (retried for 1.5 s" in errors[0], errors
+    assert "waiting for the autopilot" in procs.stderr("companion")
+    assert "Traceback" not in procs.stderr("companion")
+
+
 # --------------------------------------------------------------------------- ArduPilot over TCP
 
 
