@@ -447,7 +447,10 @@ class Companion:
                 elif (self.phase in _STREAMING and self._last_setpoint is not None
                       and now - self._last_setpoint_s > 0.2):
                     self._send(self._last_setpoint)  # keep PX4's > 2 Hz stream alive with long periods
-            self._leave()
+            try:
+                self._leave()
+            except OSError as err:  # the link broke while handing over: say so, exit as decided
+                self._event("handover", f"hand-over interrupted: link error {err}", level="error", confirmed=False)
             self._event("exit", f"exit {int(self.exit_code)} ({self.exit_code.name}): {self.exit_reason}",
                         level="info" if self.exit_code is ExitCode.OK else "error",
                         code=int(self.exit_code), reason=self.exit_reason)
