@@ -5,8 +5,8 @@ default the ArduCopter flavour over TCP, as ArduPilot SITL's SERIAL1, where the 
 failed; ``--arm`` engages GUIDED/OFFBOARD) and
 measures from the vehicle's truth trace (``--trace``, 10 Hz):
 
-* ``stop``: per trial, a flight towards a goal 60 m ahead; once the vehicle flies at >= 1.8
-  m/s, SIGTERM to the companion. ``stop_distance_m``: the farthest the vehicle got
+* ``stop``: per trial, a flight towards a goal 60 m ahead; once the vehicle flies at >= 1.6
+  m/s (over the last 0.2 s), SIGTERM to the companion. ``stop_distance_m``: the farthest the vehicle got
   (horizontally) from where it was at the signal; ``stop_time_s``: until its speed stayed
   below 0.1 m/s; ``final_offset_m``: where it ended up, 3 s after the companion exited;
   ``handed_over_to``: the mode the companion reported (``handover`` event).
@@ -29,6 +29,7 @@ import argparse
 import json
 import os
 import random
+import shutil
 import signal
 import socket
 import subprocess
@@ -43,7 +44,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 TARGETS = {"stop_distance_m": 2.0, "settled_error_m": 0.3}
-FAST_M_S = 1.8  # SIGTERM once the vehicle flies at least this fast (the issue's ~2 m/s)
+FAST_M_S = 1.6  # SIGTERM once the vehicle flies at least this fast (the issue's ~2 m/s; the policy cruises at 1.8-2)
 
 
 def _free_port(kind: int, low: int, high: int) -> int:
@@ -129,17 +130,18 @@ class _Flight:
                     proc.wait()
 
 
-def _speed(points: list[tuple[float, np.ndarray]]) -> float | None:
-    if len(points) < 2:
+def _speed(points: list[tuple[float, np.ndarray]], span: int = 1) -> float | None:
+    """Horizontal speed (m/s) over the last ``span`` trace intervals."""
+    if len(points) < span + 1:
         return None
-    (t0, p0), (t1, p1) = points[-2], points[-1]
+    (t0, p0), (t1, p1) = points[-span - 1], points[-1]
     return float(np.linalg.norm(p1[:2] - p0[:2]) / max(t1 - t0, 1e-3))
 
 
 def stop_trial(folder: Path, args) -> dict:
     flight = _Flight(folder, args, "60,0,-3")
     try:
-        speed = flight.wait(lambda: (s if (s := _speed(flight.positions())) and s >= FAST_M_S else None), 180,
+        speed = flight.wait(lambda: (s if (s := _speed(flight.positions(), 2)) and s >= FAST_M_S else None), 180,
                             f"flight at >= {FAST_M_S} m/s")
         t_signal = flight.sigterm()
         t_exit = time.time()
@@ -191,27 +193,33 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--smoke", action="store_true", help="one stop trial (CI)")
     args = parser.parse_args(argv)
     args.transport = args.transport or ("tcp" if args.autopilot == "ardupilot" else "udp")
-    stops, arrivals = [], []
-    with tempfile.TemporaryDirectory(prefix="companion_stop_") as tmp:
-        for k in range(1 if args.smoke else args.trials):
-            folder = Path(tmp) / f"stop{k}"
-            folder.mkdir()
-            stops.append(stop_trial(folder, args))
-            print(json.dumps({"stop": stops[-1]}), flush=True)
-            if args.smoke:
+    stops, arrivals, failed = [], [], []
+    tmp = Path(tempfile.mkdtemp(prefix="companion_stop_"))
+    for k in range(1 if args.smoke else args.trials):
+        for name, trial, results in (("stop", stop_trial, stops), ("arrival", arrival_trial, arrivals)):
+            if args.smoke and name == "arrival":
                 continue
-            folder = Path(tmp) / f"arrival{k}"
+            folder = tmp / f"{name}{k}"
             folder.mkdir()
-            arrivals.append(arrival_trial(folder, args))
-            print(json.dumps({"arrival": arrivals[-1]}), flush=True)
+            try:
+                results.append(trial(folder, args))
+            except (RuntimeError, subprocess.TimeoutExpired) as err:  # kept for a look: the logs are in folder
+                failed.append({"trial": f"{name}{k}", "error": str(err)})
+                print(json.dumps({"failed": failed[-1]}), flush=True)
+                continue
+            shutil.rmtree(folder, ignore_errors=True)
+            print(json.dumps({name: results[-1]}), flush=True)
+    if not failed:
+        shutil.rmtree(tmp, ignore_errors=True)
     summary = {"autopilot": args.autopilot, "transport": args.transport, "policy": str(args.policy),
-               "trials": len(stops), "stop_distance_m_max": max(s["stop_distance_m"] for s in stops),
+               "trials": len(stops), "failed": failed,
+               "stop_distance_m_max": max((s["stop_distance_m"] for s in stops), default=None),
                "settled_error_m_max": max((a["settled_error_m"] for a in arrivals if a["settled_error_m"] is not None),
                                           default=None),
                "all_handed_over": all(r["handover_confirmed"] for r in stops + arrivals),
                "targets": TARGETS, "stops": stops, "arrivals": arrivals}
     print(json.dumps(summary))
-    return 0
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":
