@@ -205,7 +205,11 @@ def build_parser() -> argparse.ArgumentParser:
     link.add_argument("--stream-rate", type=_positive("--stream-rate", 200), default=50.0, metavar="HZ",
                       help="odometry rate requested from the autopilot (default 50 Hz)")
     flight = parser.add_argument_group("flight")
-    flight.add_argument("--model", metavar="PATH", help="policy file (TorchScript with policy.json metadata)")
+    flight.add_argument("--model", metavar="PATH",
+                        help="policy file: TorchScript (.pt) or ONNX (.onnx, run by onnxruntime), with policy.json metadata")
+    flight.add_argument("--onnx-provider", choices=("auto", "cpu", "cuda", "tensorrt"), default="auto",
+                        help="onnxruntime execution provider for an .onnx model: auto (default: TensorRT, then CUDA, "
+                             "then CPU, whichever this onnxruntime build has), or one of them (refused if absent)")
     flight.add_argument("--camera", type=_camera, default="realsense", metavar="SOURCE",
                         help="depth source: realsense[:WxH@FPS] (default), sitl:PORT[:VEHICLE], replay:PATH[,loop]")
     flight.add_argument("--goal", type=_goal, metavar="N,E,D",
@@ -225,6 +229,9 @@ def build_parser() -> argparse.ArgumentParser:
                              "your camera's open-sky fraction in a recording first; 1 turns the check off)")
     flight.add_argument("--no-camera-sync", action="store_true",
                         help="do not phase-lock the control ticks to depth frame arrivals")
+    flight.add_argument("--obstacle-distance", action=argparse.BooleanOptionalAction, default=True,
+                        help="publish MAVLink OBSTACLE_DISTANCE (72 bins, body FRD) from every depth frame, for the "
+                             "autopilot's own collision prevention (default on; docs/companion.md)")
     output = parser.add_argument_group("output")
     output.add_argument("--log", type=_output_file, default="-", metavar="PATH",
                         help="JSON-lines log of every control step and event (default '-': stdout)")
@@ -305,7 +312,15 @@ def _fly(args: argparse.Namespace, log) -> int:
     from companion.policy import PolicyFileError, load_policy
 
     try:
-        policy = load_policy(args.model)
+        providers = None
+        if Path(args.model).suffix.lower() == ".onnx":
+            from companion.onnx_policy import OnnxUnavailableError, select_providers
+
+            try:
+                providers = select_providers(args.onnx_provider)
+            except OnnxUnavailableError as err:
+                raise PolicyFileError(f"{args.model}: {err}") from None
+        policy = load_policy(args.model, providers=providers)
     except PolicyFileError as err:
         return fail(ExitCode.BAD_MODEL, f"cannot use the model: {err}")
     blank_depth = np.full((1, policy.camera.frames, policy.camera.height, policy.camera.width),
@@ -315,7 +330,9 @@ def _fly(args: argparse.Namespace, log) -> int:
         policy.act(blank_depth, blank_state)
     log.event("model", f"model {args.model}: {policy.camera.width}x{policy.camera.height}x{policy.camera.frames} depth, "
               f"{policy.camera.hfov_deg:g} deg, control period {policy.control_period_s:g} s",
-              model=args.model, metadata={k: v for k, v in policy.metadata.items() if k != "provenance"})
+              model=args.model, metadata={k: v for k, v in policy.metadata.items() if k != "provenance"},
+              runtime="onnxruntime" if providers else "torchscript",
+              providers=getattr(policy.module, "providers", None))  # what onnxruntime really uses
 
     # 2. The camera.
     from companion.depth_sources import DepthSourceError, open_depth_source
@@ -363,7 +380,8 @@ def _fly(args: argparse.Namespace, log) -> int:
         config = CompanionConfig(goal_ned=args.goal, arm=args.arm, takeoff_alt_m=args.takeoff,
                                  land_on_arrival=args.land_on_arrival, exit_on_arrival=args.exit_on_arrival,
                                  timeout_s=args.timeout, link_timeout_s=args.link_timeout,
-                                 stream_rate_hz=args.stream_rate, camera_sync=not args.no_camera_sync)
+                                 stream_rate_hz=args.stream_rate, camera_sync=not args.no_camera_sync,
+                                 obstacle_distance=args.obstacle_distance)
         notifier = SystemdNotifier()
         companion = Companion(policy, depth, link, config, log, recorder, notifier)
         notifier.ready(f"model, camera and link up ({hb.kind.value}, system {hb.sysid})")

@@ -81,6 +81,7 @@ from companion.flight_modes import (
     AutopilotKind,
 )
 from companion.observation import DepthFrameStack, build_state
+from companion.obstacle_distance import ObstacleDistancePublisher
 from companion.policy import LoadedPolicy
 from companion.recording import FlightRecorder
 from companion.sdnotify import SystemdNotifier
@@ -159,6 +160,7 @@ class CompanionConfig:
     stream_rate_hz: float = 50.0
     camera_sync: bool = True
     takeoff_timeout_s: float = 60.0
+    obstacle_distance: bool = True  # publish OBSTACLE_DISTANCE per depth frame (companion.obstacle_distance)
 
 
 class ControlClock:
@@ -358,6 +360,7 @@ class Companion:
         self.low = policy.action.low_array().astype(np.float64)
         self.high = policy.action.high_array().astype(np.float64)
         self.stack = DepthFrameStack(1, policy.camera)
+        self.obstacles = ObstacleDistancePublisher(policy.camera, link) if config.obstacle_distance else None
         self.goal_ned = None if config.goal_ned is None else np.asarray(config.goal_ned, dtype=np.float64)
 
         self.phase = FlightPhase.WAITING_FOR_TELEMETRY
@@ -483,6 +486,8 @@ class Companion:
             if isinstance(item, DepthFrame):
                 self.latest_frame, self.latest_fault = item, None
                 self.clock.frame_arrived(item.arrival_s)
+                if self.obstacles is not None:  # the autopilot's collision prevention, from every frame used
+                    self.obstacles.publish(item.depth_m)
             else:
                 if self.latest_fault is None or self.latest_fault.reason != item.reason:
                     self._event("depth_fault", item.reason, level="warning")
@@ -1187,5 +1192,6 @@ class Companion:
             overruns=self.overruns, missed_ticks=self.clock.missed_ticks,
             setpoints_sent=self.link.setpoints_sent, refused_unsigned=self.link.refused_unsigned,
             dropped_foreign_address=self.link.dropped_foreign_address, dropped_foreign_link=self.link.dropped_foreign_link,
+            obstacle_distance_sent=self.obstacles.sent if self.obstacles else 0,
             phase=self.phase.value, **resident_memory_mb(),
         )

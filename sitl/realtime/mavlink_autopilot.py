@@ -174,6 +174,8 @@ class SimAutopilot:
         self._body: Body | None = None
         self._last_target_kind = "velocity"
         self.mode_changes: list[tuple[float, str, str]] = []
+        self.obstacle_distance_received = 0  # OBSTACLE_DISTANCE messages (the autopilot's proximity input)
+        self._obstacle_window: tuple[float, int] | None = None  # (start, count) of the current 1 s log window
 
     # ================================================================== helpers
     def _default_streams(self) -> dict[int, float]:
@@ -241,6 +243,26 @@ class SimAutopilot:
             self.events("set_mode_msg", vehicle=self.index, custom_mode=msg.custom_mode, accepted=ok)
         elif kind == "SET_POSITION_TARGET_LOCAL_NED" and target_sys == self.sysid:
             self._on_setpoint(msg, now_s)
+        elif kind == "OBSTACLE_DISTANCE":
+            self._on_obstacle_distance(msg, now_s)
+
+    def _on_obstacle_distance(self, msg, now_s: float) -> None:
+        """Count OBSTACLE_DISTANCE and log, once a second, its rate and the latest message's bins.
+
+        What a real autopilot's proximity driver would read; the simulated vehicle does not avoid.
+        """
+        self.obstacle_distance_received += 1
+        if self._obstacle_window is None:  # the first message starts the window (intervals are counted)
+            self._obstacle_window = (now_s, 0)
+            return
+        start, count = self._obstacle_window
+        count += 1
+        if now_s - start >= 1.0:
+            self.events("obstacle_distance", vehicle=self.index, messages=count, rate_hz=round(count / (now_s - start), 2),
+                        frame=msg.frame, angle_offset_deg=msg.angle_offset, increment_deg=msg.increment_f or msg.increment,
+                        min_distance_cm=msg.min_distance, max_distance_cm=msg.max_distance, distances_cm=list(msg.distances))
+            start, count = now_s, 0
+        self._obstacle_window = (start, count)
 
     def _ack(self, link: MavlinkUdpEndpoint, msg, result: int) -> None:
         link.mav.command_ack_send(msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())
