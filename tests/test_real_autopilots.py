@@ -77,7 +77,9 @@ def test_one_vehicle_takes_off_flies_to_its_goal_and_lands(autopilot, tmp_path):
     pos = trace.pos[:, 0]
     assert np.nanmin(pos[:, 2]) < -7.0, "it never reached the take-off altitude"
     assert np.linalg.norm(pos[-1, :2] - goal[:2]) < 1.5, f"landed at {pos[-1]}, goal {goal}"
-    assert pos[-1, 2] > -0.5, pos[-1]  # on the ground; "landed" above is the companion seeing it disarmed
+    # On the ground and disarmed ("landed" above is the companion seeing it disarmed). The estimate
+    # of height on the ground wanders by up to ~1 m in PX4 SIH (barometer), hence the margin.
+    assert pos[-1, 2] > -1.5 and trace.armed[-1][0] is False, (pos[-1], trace.armed[-1])
 
 
 @pytest.mark.timeout(600)
