@@ -231,23 +231,25 @@ class RealSwarm:
     def _start(self, name: str, argv: list[str], cwd: Path | None = None, env: dict | None = None) -> None:
         self.procs.start(name, argv, self.out / f"{name}.out", cwd=cwd, env=env)
 
-    def add_px4_world_links(self, timeout_s: float = 60.0) -> None:
+    def add_px4_world_links(self, timeout_s: float = 90.0) -> None:
         """PX4: start a ground-station link on every instance to :data:`PX4_WORLD_GCS_PORT` (its
-        ``px4-mavlink`` client; retried until the instance's server is up)."""
+        ``px4-mavlink`` client), once the instance's start-up script has run."""
         client = self.binary.parent / "px4-mavlink"
         deadline = time.monotonic() + timeout_s
         for i in range(self.n):
-            while True:
-                done = subprocess.run([str(client), "--instance", str(i), "start", "-u", str(PX4_EXTRA_LINK_BASE + i),
-                                       "-o", str(PX4_WORLD_GCS_PORT), "-r", "4000000"], capture_output=True,
-                                      text=True, timeout=10, cwd=self.out / f"{self.kind}_{i}")
-                if done.returncode == 0:
-                    break
+            booted = self.out / f"autopilot_{i}.out"
+            while "Startup script returned" not in booted.read_text(errors="replace"):
                 if time.monotonic() > deadline:
-                    raise SitlError(f"PX4 instance {i} refused a second MAVLink link: "
-                                    f"{(done.stdout + done.stderr).strip()[-300:]}")
+                    raise SitlError(f"PX4 instance {i} did not finish its start-up script in {timeout_s:g} s; "
+                                    f"see {booted}")
                 self.check_alive()
-                time.sleep(1.0)
+                time.sleep(0.5)
+            done = subprocess.run([str(client), "--instance", str(i), "start", "-u", str(PX4_EXTRA_LINK_BASE + i),
+                                   "-o", str(PX4_WORLD_GCS_PORT), "-r", "4000000"], capture_output=True,
+                                  text=True, timeout=20, cwd=self.out / f"{self.kind}_{i}")
+            if done.returncode != 0:
+                raise SitlError(f"PX4 instance {i} refused a second MAVLink link (rc {done.returncode}): "
+                                f"{(done.stdout + done.stderr).strip()[-300:]}")
 
     def start_world(self, *extra: str) -> None:
         """``python -m sitl.world`` on every vehicle's telemetry, with ``--trace`` (PX4: on the links it adds first)."""
