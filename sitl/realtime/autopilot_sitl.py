@@ -423,7 +423,7 @@ def pairwise_min_distance(pos: np.ndarray) -> tuple[float, tuple[int, int]]:
 
 def fly_circle(kind: str, binary: Path, n: int, out: Path, radius_m: float = 12.0, altitude_m: float = 8.0,
                rotation_deg: float = 0.0, time_limit_s: float = 60.0, ready_timeout_s: float = 240.0,
-               settle_s: float = 5.0, params: dict[str, float] | None = None, status=print) -> dict:
+               settle_s: float = 10.0, params: dict[str, float] | None = None, status=print) -> dict:
     """A circle of ``n`` vehicles flying to their antipodes together; the measured results.
 
     Arrival is the first time within the task's arrival radius of the goal; the settled error is
