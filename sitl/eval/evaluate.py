@@ -32,6 +32,7 @@ class EvalSettings:
     seed: int = 0  # evaluation seed = EVAL_SEED_OFFSET + seed
     dynamics: str = "kinematic"
     camera_noise: bool = False
+    noise_model: StereoNoise = field(default_factory=StereoNoise)  # the camera's errors when camera_noise is on
     max_episode_steps: int = DEFAULT_TASK_SPEC.max_episode_steps
     batch_worlds: int = 100  # episodes flown at once (parallel worlds)
     record_paths: bool = True
@@ -42,7 +43,14 @@ class EvalSettings:
 
     def describe(self) -> str:
         s = self.scenario
-        where = f"circle r={s.circle_radius_m:g} m" if s.name == "circle" else f"random {density_label(s.density)}"
+        if s.name == "circle":
+            radius = "{:g}-{:g}".format(*s.circle_radius_range_m) if s.circle_radius_range_m else f"{s.circle_radius_m:g}"
+            alt = "{:g}-{:g}".format(*s.circle_alt_range_m) if s.circle_alt_range_m else f"{s.circle_alt_m:g}"
+            where = f"circle r={radius} m at {alt} m"
+        else:
+            where = f"{s.name} {density_label(s.density)}"
+            if s.altitude_range_m:
+                where += " at {:g}-{:g} m".format(*s.altitude_range_m)
         return f"{where}, N={self.num_uavs}, {self.episodes} episodes, {self.dynamics}"
 
 
@@ -63,7 +71,7 @@ def sim_config_for(method: Method, settings: EvalSettings, num_worlds: int) -> S
         extra["control_period_s"] = method.control_period_s
     return SimConfig(num_uavs=settings.num_uavs, num_worlds=num_worlds, scenario=settings.scenario,
                      dynamics=settings.dynamics, max_episode_steps=settings.max_episode_steps,
-                     camera_noise=StereoNoise() if settings.camera_noise else None,
+                     camera_noise=settings.noise_model if settings.camera_noise else None,
                      record_paths=settings.record_paths, **extra)
 
 

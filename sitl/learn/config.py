@@ -15,8 +15,9 @@ import torch
 from companion.spec import DEFAULT_TASK_SPEC, CameraSpec
 from sitl.cli_args import MAX_THREADS
 from sitl.learn.agent import METHODS, AgentConfig
-from sitl.sim.config import (CIRCLE_RADIUS_M, TRAINING_SCENARIOS, RewardConfig, ScenarioConfig, SimConfig,
-                             density_from_name)
+from sitl.sim.config import (CIRCLE_RADIUS_M, GEOMETRIES, OBSTACLE_SCENE_DENSITY, TRAINING_SCENARIOS,
+                             RewardConfig, SimConfig, density_from_name, scenario_for)
+from sitl.sim.dynamics import KinematicRandomization
 
 @dataclass(frozen=True)
 class RecipeStage:
@@ -43,12 +44,18 @@ def _param(default, help: str):
 class TrainConfig:
     """Everything a training run depends on besides the agent's hyperparameters."""
 
-    preset: str = _param("fast", "fast (CPU, < 2 h) or paper (Table I literally); explicit flags override it")
+    preset: str = _param("fast", "fast (CPU, < 2 h), flown (fast on the task as flown: low altitudes, obstacles, "
+                                 "randomized dynamics) or paper (Table I literally); explicit flags override it")
     method: str = _param("sac_ae", f"learning method: {', '.join(METHODS)}")
     scenario: str = _param("random", "training scenario: random, circle or mixed (each episode one of the two)")
     circle_fraction: float = _param(0.5, "mixed scenario: probability that an episode is a circle episode")
     density: str = _param("medium", "random scenario density: small, medium, large or UAV/m^3")
     circle_radius_m: float = _param(CIRCLE_RADIUS_M, "circle scenario radius in m")
+    geometry: str = _param("paper", "scene geometry: paper (6 m floor, circle at 10 m) or flown (altitudes "
+                                    "1.5-15 m, circles 8-20 m at 2-15 m, 0.5 m start jitter; sitl.sim.config)")
+    obstacle_fraction: float = _param(0.0, "mixed scenario: probability that an episode is an obstacles episode")
+    randomize_dynamics: bool = _param(False, "draw each UAV's velocity lag and acceleration limits per episode "
+                                             "(sitl.sim.dynamics.KinematicRandomization)")
     yaw_jitter_deg: float = _param(45.0, "random scenario: initial heading error from the goal bearing, up to +-deg")
     arrival_radius_m: float = _param(DEFAULT_TASK_SPEC.arrival_radius_m,
                                      "distance to the goal that counts as arrival (paper: 0.5 m)")
@@ -92,6 +99,10 @@ class TrainConfig:
             raise ValueError(f"unknown scenario {self.scenario!r}; choose one of {', '.join(TRAINING_SCENARIOS)}")
         if not 0.0 <= self.circle_fraction <= 1.0:
             raise ValueError(f"circle_fraction must be in [0, 1], got {self.circle_fraction}")
+        if not 0.0 <= self.obstacle_fraction <= 1.0 - self.circle_fraction:
+            raise ValueError(f"obstacle_fraction must be in [0, 1 - circle_fraction], got {self.obstacle_fraction}")
+        if self.geometry not in GEOMETRIES:
+            raise ValueError(f"unknown geometry {self.geometry!r}; choose one of {', '.join(GEOMETRIES)}")
         if not math.isfinite(density_from_name(self.density)):
             raise ValueError(f"density must be a finite number of UAV/m^3, got {self.density!r}")
         # Integer ranges: the upper ends keep a typo from allocating (or promising) the impossible.
@@ -142,6 +153,12 @@ PRESETS: dict[str, dict] = {
     # <= 0.6 per step and the entropy bonus drowned it) and 5-step returns (one-step targets
     # with tau 0.01 propagated the arrival reward over the ~40-step episodes too slowly).
     "fast": {"train": {}, "agent": {"init_temperature": 0.01, "n_step": 5}},
+    # The task as flown (issue 15): the fast recipe on the flown geometry, a third of the episodes
+    # circles and a fifth among obstacles, each UAV with its own response. Measured training
+    # results belong in docs/training.md once a run has been made (not yet).
+    "flown": {"train": {"scenario": "mixed", "geometry": "flown", "circle_fraction": 0.3, "obstacle_fraction": 0.2,
+                        "randomize_dynamics": True},
+              "agent": {"init_temperature": 0.01, "n_step": 5}},
     "paper": {"train": {"num_worlds": 1, "image_size": 64, "replay_capacity": 20_000, "max_episodes": 200,
                         "total_updates": 0, "updates_per_episode": 400, "updates_per_env_step": 0.0,
                         "init_steps": 1_000},
@@ -191,15 +208,24 @@ def resolve_configs(train_values: dict, agent_values: dict) -> tuple[TrainConfig
 def make_sim_config(cfg: TrainConfig, num_worlds: int, record_paths: bool = False,
                     scenario_name: str | None = None) -> SimConfig:
     """The worlds of ``cfg`` (``scenario_name`` overrides its scenario, e.g. for evaluation)."""
-    scenario = ScenarioConfig(name=scenario_name or cfg.scenario, density=density_from_name(cfg.density),
-                              circle_radius_m=cfg.circle_radius_m, yaw_jitter_rad=math.radians(cfg.yaw_jitter_deg),
-                              circle_fraction=cfg.circle_fraction)
+    name = scenario_name or cfg.scenario
+    values = dict(density=density_from_name(cfg.density), yaw_jitter_rad=math.radians(cfg.yaw_jitter_deg),
+                  circle_fraction=cfg.circle_fraction, obstacle_fraction=cfg.obstacle_fraction)
+    if cfg.geometry == "paper":
+        values["circle_radius_m"] = cfg.circle_radius_m  # the flown geometry draws the radius per episode
+    if name == "obstacles":
+        values["density"] = OBSTACLE_SCENE_DENSITY  # the obstacle scene's own spacing, as swarm_test flown flies it
+    scenario = scenario_for(cfg.geometry, name, **values)
     camera = CameraSpec(width=cfg.image_size, height=cfg.image_size)
+    randomization = KinematicRandomization() if cfg.randomize_dynamics and scenario_name is None else None
     return SimConfig(num_uavs=cfg.num_uavs, num_worlds=num_worlds, scenario=scenario, camera=camera,
+                     dynamics_randomization=randomization,
                      max_episode_steps=cfg.max_episode_steps, record_paths=record_paths,
                      reward=RewardConfig(arrival_radius_m=cfg.arrival_radius_m))
 
 
 def evaluation_scenarios(cfg: TrainConfig) -> tuple[str, ...]:
-    """The scenarios a run is evaluated on: its own, or both halves of a mixed one."""
-    return ("random", "circle") if cfg.scenario == "mixed" else (cfg.scenario,)
+    """The scenarios a run is evaluated on: its own, or every part of a mixed one."""
+    if cfg.scenario != "mixed":
+        return (cfg.scenario,)
+    return ("random", "circle") + (("obstacles",) if cfg.obstacle_fraction > 0 else ())
