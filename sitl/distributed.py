@@ -69,18 +69,28 @@ def connect(address: str | None = LOCAL, num_cpus: int | None = None, log_to_dri
     packages = [Path(sitl.__file__).parent, Path(companion.__file__).parent]
     env_vars = dict(ONE_THREAD_ENV)
     os.environ.setdefault("RAY_DEDUP_LOGS", "0")  # every task's progress lines, not "repeated 2x"
-    try:
-        if address in (None, LOCAL):
-            root = str(packages[0].parent)
-            env_vars["PYTHONPATH"] = os.pathsep.join(filter(None, (root, os.environ.get("PYTHONPATH"))))
-            ray.init(num_cpus=num_cpus, include_dashboard=False, runtime_env={"env_vars": env_vars},
-                     log_to_driver=log_to_driver, logging_level="warning")
-        else:
-            ray.init(address=address, runtime_env={"env_vars": env_vars, "py_modules": [str(p) for p in packages]},
-                     log_to_driver=log_to_driver, logging_level="warning")
-    except (ConnectionError, RuntimeError, ValueError, TimeoutError) as err:
-        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise RayUnavailable(f"cannot connect to Ray at {address}: {first}") from None
+    local = address in (None, LOCAL)
+    if local:
+        root = str(packages[0].parent)
+        env_vars["PYTHONPATH"] = os.pathsep.join(filter(None, (root, os.environ.get("PYTHONPATH"))))
+    # A local Ray gets a second try: its raylet must register within a fixed 30 s, which a
+    # machine busy with other work can miss once.
+    for attempt in range(2 if local else 1):
+        try:
+            if local:
+                ray.init(num_cpus=num_cpus, include_dashboard=False, runtime_env={"env_vars": env_vars},
+                         log_to_driver=log_to_driver, logging_level="warning")
+            else:
+                ray.init(address=address, runtime_env={"env_vars": env_vars, "py_modules": [str(p) for p in packages]},
+                         log_to_driver=log_to_driver, logging_level="warning")
+            return ray
+        except Exception as err:  # noqa: BLE001 - Ray raises bare Exceptions on start-up failures
+            ray.shutdown()
+            first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+            if attempt or not local:
+                raise RayUnavailable(f"cannot {'start' if local else 'connect to'} Ray"
+                                     f"{'' if local else ' at ' + str(address)}: {first}") from None
+            log(f"starting Ray failed ({first}); trying once more")
     return ray
 
 

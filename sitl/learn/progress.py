@@ -75,10 +75,11 @@ class Progress:
     def elapsed_s(self) -> float:
         return time.perf_counter() - self._t0
 
-    def eta_s(self) -> float:
-        """Seconds left at this session's rate (inf until something is done)."""
+    def eta_s(self, elapsed_s: float | None = None) -> float:
+        """Seconds left at this session's rate (``elapsed_s`` for what is done so far; inf until something is)."""
         done = self.done - self._start_done
-        return (self.total - self.done) * self.elapsed_s() / done if done > 0 else float("inf")
+        elapsed_s = self.elapsed_s() if elapsed_s is None else elapsed_s
+        return (self.total - self.done) * elapsed_s / done if done > 0 else float("inf")
 
     def line(self) -> str:
         share = 100.0 * self.done / self.total if self.total else 0.0
