@@ -311,6 +311,9 @@ def parse_paper_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--table-episodes", type=int_range(1, MAX_EPISODES), default=None,
                         help="episodes per Table II cell (default 500: random-scene success differs between "
                              "methods by a few points, which 100 episodes cannot resolve; cells are cheap)")
+    parser.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
+                        help="evaluate the cells as Ray tasks (1 CPU each): on a Ray started on this machine, or on "
+                             "the cluster at ADDRESS (auto, ray://head:10001); needs the [ray] extra")
     _add_common(parser)
     args = parser.parse_args(argv)
     if args.episodes is None:
@@ -326,6 +329,14 @@ def parse_paper_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def paper_main(argv: list[str] | None = None) -> int:
     args = parse_paper_args(argv)
+    from sitl.distributed import RayUnavailable, import_ray
+
+    if args.ray is not None:
+        try:
+            import_ray()
+        except RayUnavailable as err:
+            print(f"error: --ray: {err}", file=sys.stderr)
+            return 2
     import torch
 
     torch.set_num_threads(args.threads)
@@ -336,8 +347,8 @@ def paper_main(argv: list[str] | None = None) -> int:
         if not path.exists():
             print(f"{method}: {path} not found, reported as 'not trained'", file=sys.stderr)
     try:
-        result = run_paper(args.out, table, fig6, args.progress, args.policy_paths)
-    except (EvaluationError, OSError) as err:  # OSError: the output folder became unwritable
+        result = run_paper(args.out, table, fig6, args.progress, args.policy_paths, ray_address=args.ray)
+    except (EvaluationError, OSError, RayUnavailable) as err:  # OSError: the output folder became unwritable
         print(f"error: {err}", file=sys.stderr)
         return 2
     counts = {k: list(result["status"].values()).count(k) for k in ("computed", "stored", "not trained")}
