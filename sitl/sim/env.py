@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.observation import DepthFrameStack, build_state
+from companion.observation import DepthFrameStack, build_state, clean_depth
 from companion.spec import DEFAULT_ACTION_SPEC, ActionSpec
 from sitl.sim.camera import DepthCamera
 from sitl.sim.collision import ground_collisions, uav_uav_collisions
@@ -72,6 +72,9 @@ class SwarmEnv:
         self.camera = DepthCamera(config.camera, config.camera_supersample, config.body)
         self.frames = DepthFrameStack(self.num_agents, config.camera)
         self.boxes, self.cylinders = boxes, cylinders
+        # Each camera's mount pitch (rad, positive up), drawn per episode (SimConfig.mount_pitch_jitter_deg).
+        self.mount_pitch_rad = np.full(self.num_agents, config.camera.mount_pitch_rad)
+        self.nearest_object_m = np.full(self.num_agents, config.camera.max_range_m)  # d_min without the ground
 
         m = self.num_agents
         self.goal_ned = np.zeros((m, 3))
@@ -123,6 +126,9 @@ class SwarmEnv:
             self._record_world(b)
             sample = sample_scenario(n, self.config.scenario, self.rng)
             self.dynamics.reset(rows, sample.start_ned, sample.yaw_rad)
+            if self.config.mount_pitch_jitter_deg > 0:
+                jitter = np.radians(self.config.mount_pitch_jitter_deg)
+                self.mount_pitch_rad[rows] = self.config.camera.mount_pitch_rad + self.rng.uniform(-jitter, jitter, n)
             self.start_ned[rows] = sample.start_ned
             self.goal_ned[rows] = sample.goal_ned
             self.acting[rows] = True
@@ -196,7 +202,8 @@ class SwarmEnv:
 
         depth = self._render()
         self.frames.push(depth)
-        reward = step_reward(prev_dist, dist, arrived, collided, nearest_depth_m(depth), cfg.reward)
+        d_min = nearest_depth_m(depth) if cfg.reward.avoid_counts_ground else self.nearest_object_m
+        reward = step_reward(prev_dist, dist, arrived, collided, d_min, cfg.reward)
         reward = np.where(acting, reward, 0.0).astype(np.float32)
         terminated = collided | arrived
         info = {"acting": acting, "outcome": self.outcome.copy(), "collided": collided, "arrived": arrived}
@@ -204,12 +211,18 @@ class SwarmEnv:
 
     # ------------------------------------------------------------------ internals
     def _render(self) -> np.ndarray:
+        """The policy's view of every camera now: render, sensor noise, then the companion's conversion.
+
+        Also updates :attr:`nearest_object_m` (the kernel's nearest non-ground surface per camera,
+        noise-free: the reward's d_min when the ground does not count).
+        """
         cfg = self.config
-        depth = self.camera.render(self.dynamics.pos_ned, self.dynamics.yaw_rad, self.uavs_per_world,
-                                   visible=self.present, boxes=self.boxes, cylinders=self.cylinders)
+        depth, self.nearest_object_m = self.camera.render_with_objects(
+            self.dynamics.pos_ned, self.dynamics.yaw_rad, self.uavs_per_world, visible=self.present,
+            boxes=self.boxes, cylinders=self.cylinders, pitch_rad=self.mount_pitch_rad)
         if cfg.camera_noise is not None:
-            depth = cfg.camera_noise.apply(depth, cfg.camera.max_range_m, self.rng)
-        return depth
+            depth = cfg.camera_noise.apply(depth, cfg.camera.max_range_m, self.rng)  # raw: invalid pixels read 0
+        return clean_depth(depth, cfg.camera.max_range_m)  # exactly what the companion feeds the policy
 
     def _record_world(self, b: int) -> None:
         """Append the per-UAV records of world b's finished episode to :attr:`completed`."""
