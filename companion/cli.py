@@ -273,9 +273,13 @@ def _fly(args: argparse.Namespace, log) -> int:
     blank_state = np.zeros((1, len(STATE_NAMES)), np.float32)
     for _ in range(20):  # let TorchScript's profiling executor settle before the first real step
         policy.act(blank_depth, blank_state)
-    log.event("model", f"model {args.model}: {policy.camera.width}x{policy.camera.height}x{policy.camera.frames} depth, "
-              f"{policy.camera.hfov_deg:g} deg, control period {policy.control_period_s:g} s",
+    cam = policy.camera
+    log.event("model", f"model {args.model}: {cam.width}x{cam.height}x{cam.frames} depth, "
+              f"{cam.hfov_deg:g} x {cam.vertical_fov_deg:.4g} deg pitched {cam.mount_pitch_deg:+g} deg, "
+              f"range {cam.min_range_m:g}-{cam.max_range_m:g} m, control period {policy.control_period_s:g} s",
               model=args.model, metadata={k: v for k, v in policy.metadata.items() if k != "provenance"})
+    for note in policy.notes:  # how an older policy file was read
+        log.event("model_note", note)
 
     # 2. The camera.
     from companion.depth_sources import DepthSourceError, open_depth_source
