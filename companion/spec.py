@@ -181,9 +181,18 @@ MAX_MOUNT_PITCH_DEG = 45.0
 #: ~10 m the stereo match is noise: Intel D400 series datasheet and product page).
 REALSENSE_D435 = CameraSpec(width=48, height=32, hfov_deg=87.0, vfov_deg=58.0, max_range_m=10.0,
                             min_range_m=0.2, frames=3, mount_pitch_deg=0.0)
+#: The image a simulated D435 sends to the companion (``sitl.vehicle --camera realsense_d435``):
+#: square pixels at 16:9 like the sensor's 848x480 / 1280x720 modes, downscaled to 160x90 to fit one
+#: UDP datagram, at the ~90 deg horizontal FOV a typical unit's intrinsics give (fx ~ width / 2;
+#: the datasheet's 87 x 58 deg is the guaranteed field, 90 x 58.7 deg what units deliver). The
+#: companion crops it to the policy's 87 x 58 deg and min-pools it to 48x32.
+REALSENSE_D435_SENSOR = CameraSpec(width=160, height=90, hfov_deg=90.0, max_range_m=10.0, min_range_m=0.2)
 #: The camera presets by name (``--camera NAME`` in sitl's command lines). ``paper``: the
 #: paper's 90 x 90 deg square camera with a 20 m range, the version-1 policy file's camera.
 CAMERA_PRESETS: dict[str, CameraSpec] = {"paper": CameraSpec(), "realsense_d435": REALSENSE_D435}
+#: The image each preset's sensor delivers (what ``sitl.vehicle`` renders and sends): the paper
+#: camera is rendered at the policy's own resolution, a real sensor at its own, wider, geometry.
+SENSOR_PRESETS: dict[str, CameraSpec] = {"paper": CameraSpec(), "realsense_d435": REALSENSE_D435_SENSOR}
 
 
 @dataclass(frozen=True)
