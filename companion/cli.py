@@ -179,10 +179,11 @@ def build_parser() -> argparse.ArgumentParser:
                         help="exit 0 once arrived (and landed with --land-on-arrival), non-zero on any failure")
     flight.add_argument("--timeout", type=_positive("--timeout"), metavar="S", help="exit 7 if not arrived within S seconds")
     flight.add_argument("--max-invalid-depth", type=_positive("--max-invalid-depth", 1.0),
-                        default=MAX_INVALID_DEPTH_FRACTION, metavar="FRACTION",
+                        default=None, metavar="FRACTION",
                         help="hold when more than this fraction of a depth frame's pixels are invalid (0, negative, "
-                             f"NaN): a covered, dazzled or dead camera (default {MAX_INVALID_DEPTH_FRACTION:g}; check "
-                             "your camera's open-sky fraction in a recording first; 1 turns the check off)")
+                             f"NaN): a covered, dazzled or dead camera (default {MAX_INVALID_DEPTH_FRACTION:g} for an "
+                             "ideal simulated camera; 1, off, for a real sensor's policy (min range > 0), whose open-sky "
+                             "frames are 100 % invalid: docs/companion.md; 1 turns the check off)")
     flight.add_argument("--no-camera-sync", action="store_true",
                         help="do not phase-lock the control ticks to depth frame arrivals")
     output = parser.add_argument_group("output")
@@ -285,7 +286,11 @@ def _fly(args: argparse.Namespace, log) -> int:
     from companion.depth_sources import DepthSourceError, open_depth_source
 
     try:
-        depth = open_depth_source(args.camera, policy.camera, args.max_invalid_depth)
+        from companion.observation import default_max_invalid_fraction
+
+        max_invalid = (args.max_invalid_depth if args.max_invalid_depth is not None
+                       else default_max_invalid_fraction(policy.camera))
+        depth = open_depth_source(args.camera, policy.camera, max_invalid)
         depth.start()
     except DepthSourceError as err:
         return fail(ExitCode.CAMERA, f"cannot start the camera: {err}")
