@@ -136,3 +136,24 @@ def test_mixed_scenario_draws_circles_with_the_given_fraction():
     assert not any(np.allclose(sample_scenario(8, only_random, rng).goal_ned[:, 2], -10.0) for _ in range(20))
     with pytest.raises(ValueError, match="circle_fraction"):
         ScenarioConfig(name="mixed", circle_fraction=1.5)
+
+
+def test_mount_pitch_is_drawn_per_episode_within_the_jitter():
+    import math
+
+    from companion.spec import REALSENSE_D435
+    from sitl.sim.config import SimConfig
+    from sitl.sim.env import SwarmEnv
+
+    env = SwarmEnv(SimConfig(num_uavs=4, num_worlds=50, camera=REALSENSE_D435, mount_pitch_jitter_deg=5.0), seed=3)
+    env.reset()
+    first = env.mount_pitch_rad.copy()
+    assert np.abs(first).max() <= math.radians(5.0) and np.abs(first).max() > math.radians(4.0)
+    assert len(np.unique(first)) == first.size  # every camera its own
+    env.reset()
+    assert not np.array_equal(first, env.mount_pitch_rad)
+    level = SwarmEnv(SimConfig(num_uavs=4, camera=REALSENSE_D435), seed=3)
+    level.reset()
+    assert np.all(level.mount_pitch_rad == 0.0)
+    with pytest.raises(ValueError, match="mount_pitch_jitter_deg"):
+        SimConfig(mount_pitch_jitter_deg=45.0)
