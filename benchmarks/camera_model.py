@@ -15,7 +15,9 @@ Two measurements, each a table and, as the last line, one JSON object:
   blinded-camera check (``--max-invalid-depth``) sees in flight.
 
 Usage: ``python benchmarks/camera_model.py [--episodes 20] [--smoke]`` (``--smoke``: 2 episodes
-per scene, what CI runs to keep the script working).
+per scene, what CI runs to keep the script working). ``--render-cost [--repo CHECKOUT]`` only
+times ``DepthCamera.render`` of 128 cameras (32x32, 4x4 sub-rays, random medium scene, one
+thread, best of 7 x 20 renders) in this or another checkout: alternate runs for a before/after.
 """
 
 from __future__ import annotations
@@ -27,16 +29,14 @@ import sys
 from pathlib import Path
 
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+# --render-cost --repo PATH times another checkout's kernel (the before/after of a kernel change).
+_REPO = sys.argv[sys.argv.index("--repo") + 1] if "--repo" in sys.argv[:-1] else str(Path(__file__).resolve().parent.parent)
+sys.path.insert(0, _REPO)
 
 import numpy as np  # noqa: E402
 
-from companion.spec import CAMERA_PRESETS, CameraSpec  # noqa: E402
-from sitl.sim.baselines import straight_to_goal  # noqa: E402
-from sitl.sim.camera import DepthCamera, StereoNoise  # noqa: E402
-from sitl.sim.config import RewardConfig, ScenarioConfig, SimConfig  # noqa: E402
+from sitl.sim.config import SimConfig  # noqa: E402
 from sitl.sim.env import SwarmEnv  # noqa: E402
-from sitl.sim.reward import avoid_reward, nearest_depth_m  # noqa: E402
 
 ALTITUDES_M = (1.5, 2.0, 3.0, 5.0, 10.0)
 ALTITUDE_BINS_M = ((0.0, 3.0), (3.0, 6.0), (6.0, 10.0), (10.0, 13.0), (13.0, 100.0))
@@ -44,6 +44,11 @@ ALTITUDE_BINS_M = ((0.0, 3.0), (3.0, 6.0), (6.0, 10.0), (10.0, 13.0), (13.0, 100
 
 def avoid_table() -> dict:
     """Avoidance reward per step at each altitude, per camera, with and without the ground."""
+    from companion.spec import CAMERA_PRESETS
+    from sitl.sim.camera import DepthCamera
+    from sitl.sim.config import RewardConfig
+    from sitl.sim.reward import avoid_reward, nearest_depth_m
+
     rows = {}
     for name, spec in CAMERA_PRESETS.items():
         camera = DepthCamera(spec, 4)
@@ -58,7 +63,12 @@ def avoid_table() -> dict:
 
 def invalid_fractions(episodes: int, seed: int = 0) -> dict:
     """Invalid-pixel fractions of raw D435 frames over straight flights, binned by altitude."""
-    spec: CameraSpec = CAMERA_PRESETS["realsense_d435"]
+    from companion.spec import CAMERA_PRESETS
+    from sitl.sim.baselines import straight_to_goal
+    from sitl.sim.camera import StereoNoise
+    from sitl.sim.config import ScenarioConfig
+
+    spec = CAMERA_PRESETS["realsense_d435"]
     noise = StereoNoise(min_range_m=spec.min_range_m)
     scenes = [ScenarioConfig(name="random", box_floor_alt_m=floor) for floor in (1.5, 3.0, 6.0, 9.0, 12.0)]
     scenes += [ScenarioConfig(name="circle", circle_alt_m=alt, circle_radius_m=12.0) for alt in (2.0, 5.0, 10.0, 15.0)]
@@ -99,11 +109,33 @@ def invalid_fractions(episodes: int, seed: int = 0) -> dict:
     return rows
 
 
+def render_cost_ms() -> float:
+    """Milliseconds to render 128 cameras (16 random medium worlds of 8), best of 7 x 20."""
+    import time
+
+    env = SwarmEnv(SimConfig(num_uavs=8, num_worlds=16, record_paths=False), seed=0)
+    env.reset()
+    d = env.dynamics
+    env.camera.render(d.pos_ned, d.yaw_rad, 8, visible=env.present)
+    best = float("inf")
+    for _ in range(7):
+        started = time.perf_counter()
+        for _ in range(20):
+            env.camera.render(d.pos_ned, d.yaw_rad, 8, visible=env.present)
+        best = min(best, (time.perf_counter() - started) / 20)
+    return best * 1e3
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--episodes", type=int, default=20, help="episodes per scene (default 20)")
     parser.add_argument("--smoke", action="store_true", help="CI check: 2 episodes per scene")
+    parser.add_argument("--render-cost", action="store_true", help="only time the render kernel")
+    parser.add_argument("--repo", default=None, help="with --render-cost: the checkout whose kernel to time")
     args = parser.parse_args()
+    if args.render_cost:
+        print(json.dumps({"benchmark": "render_cost", "repo": _REPO, "ms_per_128_cameras": round(render_cost_ms(), 3)}))
+        return
     episodes = 2 if args.smoke else args.episodes
     if episodes < 1:
         parser.error(f"--episodes must be >= 1, got {episodes}")
