@@ -171,3 +171,18 @@ def test_bad_arguments():
         DepthCamera(CameraSpec(), 1).render(np.zeros((3, 3)), np.zeros(3), 2)
     with pytest.raises(ValueError, match="hfov"):
         CameraSpec(hfov_deg=200)
+
+
+def test_a_simulated_d435_image_becomes_what_the_policy_was_trained_on():
+    """sitl.vehicle's 160x90 D435 image, through the companion's converter, matches the policy camera's render."""
+    from companion.depth_sources import DepthConverter
+    from companion.spec import REALSENSE_D435, REALSENSE_D435_SENSOR
+
+    pos = np.array([[0.0, 0.0, -2.5], [5.0, 1.0, -2.5]])  # 2.5 m up, a UAV 5 m ahead, slightly right
+    sensor = DepthCamera(REALSENSE_D435_SENSOR, 2).render(pos, np.zeros(2), 2)[0]
+    converted = DepthConverter(REALSENSE_D435, max_invalid_fraction=1.0).convert(sensor, REALSENSE_D435_SENSOR.hfov_deg)
+    trained = DepthCamera(REALSENSE_D435, 4).render(pos, np.zeros(2), 2)[0]
+    assert converted.shape == trained.shape == (32, 48)
+    assert converted.min() == pytest.approx(trained.min(), abs=0.05)  # the UAV, ~4.7 m
+    # Same picture: the ground rows and the UAV's pixels agree to within a pixel's footprint.
+    assert np.mean(np.abs(converted - trained) < 0.5) > 0.9

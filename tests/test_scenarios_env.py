@@ -157,3 +157,19 @@ def test_mount_pitch_is_drawn_per_episode_within_the_jitter():
     assert np.all(level.mount_pitch_rad == 0.0)
     with pytest.raises(ValueError, match="mount_pitch_jitter_deg"):
         SimConfig(mount_pitch_jitter_deg=45.0)
+
+
+def test_a_noisy_real_camera_reaches_the_policy_through_the_companion_conversion():
+    from companion.spec import REALSENSE_D435
+    from sitl.sim.camera import StereoNoise
+    from sitl.sim.config import SimConfig
+    from sitl.sim.env import SwarmEnv
+
+    env = SwarmEnv(SimConfig(num_uavs=8, num_worlds=4, camera=REALSENSE_D435, camera_noise=StereoNoise()), seed=0)
+    obs = env.reset()
+    for _ in range(5):
+        obs, *_ = env.step(straight_to_goal(obs.state))
+    depth = obs.depth
+    assert depth.shape == (32, 3, 32, 48)
+    assert depth.min() > 0 and depth.max() == REALSENSE_D435.max_range_m  # no zeros: holes read max range
+    assert 0.3 < np.mean(depth[:, -1] == REALSENSE_D435.max_range_m) < 1.0  # holes and sky, but not only
