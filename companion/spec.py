@@ -223,13 +223,13 @@ DEFAULT_TASK_SPEC = TaskSpec()
 # --------------------------------------------------------------------------- onboard safety limits (issue 16)
 
 #: A depth frame with more than this fraction of invalid pixels (0, negative or non-finite,
-#: counted on the camera's raw image before any conversion) is a blinded or dead sensor, not
-#: an empty sky: the companion holds. A RealSense reports 0 where it has no stereo match. A
-#: level camera in open sky loses the sky (at most the upper half of the image) plus
-#: textureless patches below the horizon: typically 40-70 % invalid, so 50 % would hold in
-#: normal flight. A covered lens, a lens against a wall (inside the ~0.3 m minimum range),
-#: darkness or a dead sensor read 95-100 % invalid. 90 % separates the two with a margin on
-#: each side; the 10 % that must remain valid is still ~100 pixels of the 32x32 policy view.
+#: counted on the camera's raw image before any conversion) is a blinded or dead sensor: the
+#: companion holds. This is the limit for policies of an ideal camera (``min_range_m`` 0, the
+#: simulator's perfect depth, where only a dead or covered sensor reads 0). A real stereo
+#: sensor reports the sky and everything beyond its range as 0: a level D435 more than ~6 m
+#: above the ground reads > 90 % invalid in 99 % of normal frames (``benchmarks/camera_model.py``),
+#: so for a real sensor's policy the default is off
+#: (:func:`companion.observation.default_max_invalid_fraction`, docs/companion.md).
 MAX_INVALID_DEPTH_FRACTION = 0.90
 
 #: Goals (``--goal`` and run-time SET_POSITION_TARGET_LOCAL_NED) must be finite and within
