@@ -17,8 +17,10 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import socket
 import sys
+import time
 from dataclasses import asdict
 from pathlib import Path
 
@@ -68,8 +70,40 @@ def _goal(text: str):
     return np.asarray(values)
 
 
+#: A value that starts with '-' but is a number or a comma-separated list of numbers
+#: (``-24,0,-8``, ``-5``, ``-1.5e2,0,-3``): argparse would take it for an option.
+_NEGATIVE_VALUE = re.compile(r"-\.?\d[\d.eE+\-]*(,[+\-]?[\d.eE+\-]*)*")
+
+
+def join_negative_values(parser: argparse.ArgumentParser, argv: list[str]) -> list[str]:
+    """``--goal -24,0,-8`` -> ``--goal=-24,0,-8`` for every option of ``parser`` taking one value.
+
+    argparse treats an argument that starts with '-' as an option unless it is a plain negative
+    number, so ``--goal -24,0,-8`` fails with "expected one argument" (issue 18), and every
+    circle layout has negative coordinates. Joining the pair is exactly what ``--goal=...``
+    means; anything after ``--`` is left alone. Shared with the simulator's command lines.
+    """
+    one_value = {option for action in parser._actions if action.option_strings and action.nargs is None
+                 for option in action.option_strings}
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        arg = argv[i]
+        if arg == "--":
+            out.extend(argv[i:])
+            break
+        if arg in one_value and i + 1 < len(argv) and _NEGATIVE_VALUE.fullmatch(argv[i + 1]):
+            out.append(f"{arg}={argv[i + 1]}")
+            i += 2
+            continue
+        out.append(arg)
+        i += 1
+    return out
+
+
 class _Parser(argparse.ArgumentParser):
-    """argparse's parser, but a bad value prints one line, ``companion: error: ...``, and exits 2.
+    """argparse's parser, but a bad value prints one line, ``companion: error: ...``, and exits 2,
+    and negative N,E,D values are taken as written (:func:`join_negative_values`).
 
     argparse prints the usage block first; in the systemd journal the reason then hides
     below it. ``--help`` still shows the usage.
@@ -77,6 +111,10 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message: str):  # noqa: D102 - argparse's API
         self.exit(2, f"{self.prog}: error: {' '.join(message.split())} (see --help)\n")
+
+    def parse_known_args(self, args=None, namespace=None):  # noqa: D102 - argparse's API
+        argv = sys.argv[1:] if args is None else list(args)
+        return super().parse_known_args(join_negative_values(self, argv), namespace)
 
 
 def _positive(name: str, upper: float = math.inf, lower: float = 0.0):
@@ -156,7 +194,8 @@ def build_parser() -> argparse.ArgumentParser:
                       help="MAVLink connection: udp:14540 (listen, PX4 SITL's onboard port), udpin:HOST:PORT, "
                            "udpout:HOST:PORT, tcp:HOST:PORT, /dev/ttyTHS1,921600")
     link.add_argument("--heartbeat-timeout", type=_positive("--heartbeat-timeout", HEARTBEAT_TIMEOUT_MAX_S), default=10.0, metavar="S",
-                      help="give up if no autopilot heartbeat arrives within S seconds (default 10)")
+                      help="give up if no autopilot heartbeat arrives within S seconds (default 10); a TCP "
+                           "connection refused or a serial device not there yet is retried meanwhile")
     link.add_argument("--link-timeout", type=_positive("--link-timeout", LINK_TIMEOUT_MAX_S, LINK_TIMEOUT_MIN_S),
                       default=2.0, metavar="S",
                       help=f"declare the link lost after S seconds without a heartbeat, {LINK_TIMEOUT_MIN_S:g}.."
@@ -166,10 +205,15 @@ def build_parser() -> argparse.ArgumentParser:
     link.add_argument("--stream-rate", type=_positive("--stream-rate", 200), default=50.0, metavar="HZ",
                       help="odometry rate requested from the autopilot (default 50 Hz)")
     flight = parser.add_argument_group("flight")
-    flight.add_argument("--model", metavar="PATH", help="policy file (TorchScript with policy.json metadata)")
+    flight.add_argument("--model", metavar="PATH",
+                        help="policy file: TorchScript (.pt) or ONNX (.onnx, run by onnxruntime), with policy.json metadata")
+    flight.add_argument("--onnx-provider", choices=("auto", "cpu", "cuda", "tensorrt"), default="auto",
+                        help="onnxruntime execution provider for an .onnx model: auto (default: TensorRT, then CUDA, "
+                             "then CPU, whichever this onnxruntime build has), or one of them (refused if absent)")
     flight.add_argument("--camera", type=_camera, default="realsense", metavar="SOURCE",
                         help="depth source: realsense[:WxH@FPS] (default), sitl:PORT[:VEHICLE], replay:PATH[,loop]")
-    flight.add_argument("--goal", type=_goal, metavar="N,E,D", help="goal in local NED metres (altitude is -D)")
+    flight.add_argument("--goal", type=_goal, metavar="N,E,D",
+                        help="goal in local NED metres (altitude is -D); negative values as written: --goal -24,0,-8")
     flight.add_argument("--arm", action="store_true",
                         help="arm, take off and switch to OFFBOARD/GUIDED automatically (SITL and tests; needs --takeoff)")
     flight.add_argument("--takeoff", type=_positive("--takeoff", 100), metavar="ALT",
@@ -186,6 +230,9 @@ def build_parser() -> argparse.ArgumentParser:
                              "frames are 100 % invalid: docs/companion.md; 1 turns the check off)")
     flight.add_argument("--no-camera-sync", action="store_true",
                         help="do not phase-lock the control ticks to depth frame arrivals")
+    flight.add_argument("--obstacle-distance", action=argparse.BooleanOptionalAction, default=True,
+                        help="publish MAVLink OBSTACLE_DISTANCE (72 bins, body FRD) from every depth frame, for the "
+                             "autopilot's own collision prevention (default on; docs/companion.md)")
     output = parser.add_argument_group("output")
     output.add_argument("--log", type=_output_file, default="-", metavar="PATH",
                         help="JSON-lines log of every control step and event (default '-': stdout)")
@@ -266,7 +313,15 @@ def _fly(args: argparse.Namespace, log) -> int:
     from companion.policy import PolicyFileError, load_policy
 
     try:
-        policy = load_policy(args.model)
+        providers = None
+        if Path(args.model).suffix.lower() == ".onnx":
+            from companion.onnx_policy import OnnxUnavailableError, select_providers
+
+            try:
+                providers = select_providers(args.onnx_provider)
+            except OnnxUnavailableError as err:
+                raise PolicyFileError(f"{args.model}: {err}") from None
+        policy = load_policy(args.model, providers=providers)
     except PolicyFileError as err:
         return fail(ExitCode.BAD_MODEL, f"cannot use the model: {err}")
     blank_depth = np.full((1, policy.camera.frames, policy.camera.height, policy.camera.width),
@@ -278,7 +333,9 @@ def _fly(args: argparse.Namespace, log) -> int:
     log.event("model", f"model {args.model}: {cam.width}x{cam.height}x{cam.frames} depth, "
               f"{cam.hfov_deg:g} x {cam.vertical_fov_deg:.4g} deg pitched {cam.mount_pitch_deg:+g} deg, "
               f"range {cam.min_range_m:g}-{cam.max_range_m:g} m, control period {policy.control_period_s:g} s",
-              model=args.model, metadata={k: v for k, v in policy.metadata.items() if k != "provenance"})
+              model=args.model, metadata={k: v for k, v in policy.metadata.items() if k != "provenance"},
+              runtime="onnxruntime" if providers else "torchscript",
+              providers=getattr(policy.module, "providers", None))  # what onnxruntime really uses
     for note in policy.notes:  # how an older policy file was read
         log.event("model_note", note)
 
@@ -310,9 +367,15 @@ def _fly(args: argparse.Namespace, log) -> int:
                 return fail(ExitCode.ERROR, f"cannot write the recording {args.record}: {err.strerror}")
         key = load_signing_key(args.signing_key) if args.signing_key else None  # checked by parse_args
         link = AutopilotLink(args.connect, signing_key=key, relock_after_s=args.link_timeout)
+        started_s = time.monotonic()
+
+        def waiting(reason: str) -> None:  # the autopilot may boot after us (ArduPilot SITL's TCP ports)
+            log.event("link", f"waiting for the autopilot: {reason}; retrying for up to {args.heartbeat_timeout:g} s "
+                      "(--heartbeat-timeout)", level="warning", waiting=True)
+
         try:
-            link.open()
-            hb = link.wait_for_autopilot(args.heartbeat_timeout)
+            link.open(retry_for_s=args.heartbeat_timeout, on_wait=waiting)
+            hb = link.wait_for_autopilot(max(args.heartbeat_timeout - (time.monotonic() - started_s), 1.0))
         except LinkError as err:
             return fail(ExitCode.LINK, str(err))
         log.event("link", f"connected to {hb.kind.value.upper()} (system {hb.sysid}) on {link.connection}: "
@@ -326,7 +389,8 @@ def _fly(args: argparse.Namespace, log) -> int:
         config = CompanionConfig(goal_ned=args.goal, arm=args.arm, takeoff_alt_m=args.takeoff,
                                  land_on_arrival=args.land_on_arrival, exit_on_arrival=args.exit_on_arrival,
                                  timeout_s=args.timeout, link_timeout_s=args.link_timeout,
-                                 stream_rate_hz=args.stream_rate, camera_sync=not args.no_camera_sync)
+                                 stream_rate_hz=args.stream_rate, camera_sync=not args.no_camera_sync,
+                                 obstacle_distance=args.obstacle_distance)
         notifier = SystemdNotifier()
         companion = Companion(policy, depth, link, config, log, recorder, notifier)
         notifier.ready(f"model, camera and link up ({hb.kind.value}, system {hb.sysid})")

@@ -13,7 +13,8 @@ Three sources (``--camera``):
   (:mod:`companion.recording`) at their recorded timing.
 
 Every frame goes through :class:`DepthConverter`: cropped to the policy's horizontal field
-of view and aspect (:func:`companion.observation.crop_to_hfov`), min-pooled over valid
+of view and aspect (:func:`companion.observation.crop_to_hfov`; a RealSense around its principal
+point from its intrinsics, :func:`crop_to_policy_fov`), min-pooled over valid
 pixels to the policy's resolution (:func:`companion.observation.min_pool_depth`) and
 checked (:func:`companion.observation.validate_depth_frame`) — the code the simulator
 uses. A frame that cannot be converted becomes a :class:`DepthFault` with the reason, which
@@ -370,18 +371,134 @@ class ReplayDepthSource(DepthSource):
 # --------------------------------------------------------------------------- RealSense
 
 
+class RealSenseDevice:
+    """What :class:`RealSenseDepthSource` needs from the RealSense SDK: a z16 depth stream.
+
+    The default, :class:`RealSensePipeline`, opens the first connected camera through
+    ``rs.pipeline``; :class:`RealSenseSensorStream` streams any SDK depth sensor (such as a
+    ``rs.software_device``'s, which tests feed with frames) through an ``rs.syncer``.
+    """
+
+    def start(self):
+        """Start streaming; return (depth scale in m per z16 unit, the stream's ``rs.intrinsics``)."""
+        raise NotImplementedError
+
+    def wait_for_frames(self, timeout_ms: int):
+        """The next ``rs.composite_frame``; raise RuntimeError if none comes within ``timeout_ms``."""
+        raise NotImplementedError
+
+    def stop(self) -> None:
+        """Stop streaming."""
+        raise NotImplementedError
+
+
+class RealSensePipeline(RealSenseDevice):
+    """The first connected RealSense camera's depth stream through ``rs.pipeline``."""
+
+    def __init__(self, width: int, height: int, fps: int) -> None:
+        self.width, self.height, self.fps = width, height, fps
+        self._pipeline = None
+
+    def start(self):
+        import pyrealsense2 as rs  # noqa: PLC0415 - optional extra
+
+        pipeline = rs.pipeline()
+        config = rs.config()
+        config.enable_stream(rs.stream.depth, self.width, self.height, rs.format.z16, self.fps)
+        profile = pipeline.start(config)
+        self._pipeline = pipeline
+        scale = float(profile.get_device().first_depth_sensor().get_depth_scale())
+        return scale, profile.get_stream(rs.stream.depth).as_video_stream_profile().get_intrinsics()
+
+    def wait_for_frames(self, timeout_ms: int):
+        return self._pipeline.wait_for_frames(timeout_ms)
+
+    def stop(self) -> None:
+        if self._pipeline is not None:
+            self._pipeline.stop()
+            self._pipeline = None
+
+
+class RealSenseSensorStream(RealSenseDevice):
+    """One SDK depth sensor's z16 stream (``profile``) delivered through an ``rs.syncer``.
+
+    Args:
+        sensor: an ``rs.sensor`` that is a depth sensor (it reports ``depth_units``).
+        profile: the ``rs.stream_profile`` of its z16 depth stream to open.
+    """
+
+    def __init__(self, sensor, profile) -> None:
+        self.sensor, self.profile = sensor, profile
+        self._syncer = None
+
+    def start(self):
+        import pyrealsense2 as rs  # noqa: PLC0415 - optional extra
+
+        self._syncer = rs.syncer()
+        self.sensor.open(self.profile)
+        self.sensor.start(self._syncer)
+        scale = float(self.sensor.as_depth_sensor().get_depth_scale())
+        return scale, self.profile.as_video_stream_profile().get_intrinsics()
+
+    def wait_for_frames(self, timeout_ms: int):
+        return self._syncer.wait_for_frames(timeout_ms)
+
+    def stop(self) -> None:
+        if self._syncer is not None:
+            self.sensor.stop()
+            self.sensor.close()
+            self._syncer = None
+
+
+def crop_to_policy_fov(depth_m: np.ndarray, fx: float, fy: float, ppx: float, ppy: float,
+                       target: CameraSpec) -> np.ndarray:
+    """The pixels of a pinhole camera's frame [H, W] that lie within the policy's field of view.
+
+    Keeps the columns whose centre direction ``(u - ppx) / fx`` lies within +-``tan_half_hfov``
+    and the rows whose ``(v - ppy) / fy`` lies within +-``tan_half_vfov`` (RealSense
+    intrinsics: pixel centres at integer coordinates), so the crop is centred on the optical
+    axis even when the principal point is off-centre. Raises :class:`DepthFrameError` when the
+    sensor does not see the whole of the policy's field of view (half a pixel of tolerance).
+    """
+    height, width = depth_m.shape[-2:]
+    bounds = []
+    for name, size, focal, centre, tan_half, fov_deg in (
+            ("horizontal", width, fx, ppx, target.tan_half_hfov, target.hfov_deg),
+            ("vertical", height, fy, ppy, target.tan_half_vfov, target.vfov_deg)):
+        low, high = centre - tan_half * focal, centre + tan_half * focal
+        if low < -0.5 or high > size - 0.5:
+            seen = math.degrees(math.atan((centre + 0.5) / focal) + math.atan((size - 0.5 - centre) / focal))
+            raise DepthFrameError(f"camera {name} field of view {seen:.1f} deg does not cover the policy's "
+                                  f"{fov_deg:.1f} deg")
+        bounds.append((max(0, math.ceil(low - 1e-9)), min(size - 1, math.floor(high + 1e-9)) + 1))
+    (left, right), (top, bottom) = bounds
+    return depth_m[..., top:bottom, left:right]
+
+
 class RealSenseDepthSource(DepthSource):
     """An Intel RealSense depth stream through ``pyrealsense2`` (optional dependency).
 
     A background thread owns the device (``wait_for_frames`` blocks) and hands the newest
-    frame to the control loop through a one-slot mailbox, waking it with a pipe.
+    frame to the control loop through a one-slot mailbox, waking it with a pipe. Each z16
+    frame is scaled to metres by the device's depth scale (0 stays "no data"), cropped to
+    the policy's field of view around the principal point (:func:`crop_to_policy_fov`) and
+    converted like every other source (:class:`DepthConverter`: blinded check on the raw
+    pixels, min-pool, validation).
+
+    Args:
+        camera: the policy's camera.
+        width, height, fps: the stream to ask the connected camera for.
+        device: the SDK device to stream from (default: :class:`RealSensePipeline`, the first
+            connected camera); tests pass a :class:`RealSenseSensorStream` of a ``software_device``.
     """
 
-    def __init__(self, camera: CameraSpec, width: int = 848, height: int = 480, fps: int = 30) -> None:
+    def __init__(self, camera: CameraSpec, width: int = 848, height: int = 480, fps: int = 30,
+                 device: RealSenseDevice | None = None) -> None:
         self.width, self.height, self.fps = width, height, fps
         self.name = f"realsense:{width}x{height}@{fps}"
         self.converter = DepthConverter(camera)
-        self._pipeline = None
+        self.device = device or RealSensePipeline(width, height, fps)
+        self._started = False
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._lock = threading.Lock()
@@ -389,46 +506,57 @@ class RealSenseDepthSource(DepthSource):
         self._wake_r, self._wake_w = -1, -1
         self.depth_scale_m = 0.001
         self.hfov_deg = 87.0
+        self.intrinsics: tuple[float, float, float, float] | None = None  # fx, fy, ppx, ppy (pixels)
 
     def start(self) -> None:
         try:
-            import pyrealsense2 as rs  # noqa: PLC0415 - optional extra
+            import pyrealsense2  # noqa: F401, PLC0415 - optional extra
         except ImportError as err:
             raise DepthSourceError("the realsense camera needs pyrealsense2: pip install 'swarmnav[realsense]'") from err
-        pipeline = rs.pipeline()
-        config = rs.config()
-        config.enable_stream(rs.stream.depth, self.width, self.height, rs.format.z16, self.fps)
         try:
-            profile = pipeline.start(config)
+            self.depth_scale_m, intr = self.device.start()
         except RuntimeError as err:
             raise DepthSourceError(f"cannot start the RealSense depth stream {self.width}x{self.height}@{self.fps}: {err}") from err
-        self.depth_scale_m = float(profile.get_device().first_depth_sensor().get_depth_scale())
-        intrinsics = profile.get_stream(rs.stream.depth).as_video_stream_profile().get_intrinsics()
-        self.hfov_deg = math.degrees(2.0 * math.atan(intrinsics.width / (2.0 * intrinsics.fx)))
-        try:  # refuse a camera narrower than the policy now, not at the first frame
-            crop_to_hfov(np.zeros((intrinsics.height, intrinsics.width), np.float32), self.hfov_deg, self.converter.camera)
+        self._started = True
+        self.width, self.height = int(intr.width), int(intr.height)
+        self.intrinsics = (float(intr.fx), float(intr.fy), float(intr.ppx), float(intr.ppy))
+        self.hfov_deg = math.degrees(math.atan((intr.ppx + 0.5) / intr.fx) + math.atan((intr.width - 0.5 - intr.ppx) / intr.fx))
+        if not (self.depth_scale_m > 0 and math.isfinite(self.depth_scale_m)):
+            self.close()
+            raise DepthSourceError(f"RealSense reports an invalid depth scale {self.depth_scale_m!r}")
+        try:  # refuse a camera that does not see the policy's whole field of view now, not at the first frame
+            crop_to_policy_fov(np.zeros((self.height, self.width), np.float32), *self.intrinsics, self.converter.camera)
         except DepthFrameError as err:
-            pipeline.stop()
+            self.close()
             raise DepthSourceError(f"RealSense cannot feed this policy: {err}") from err
-        self._pipeline = pipeline
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
         self._thread = threading.Thread(target=self._run, name="realsense", daemon=True)
         self._thread.start()
 
+    def convert(self, z16: np.ndarray) -> np.ndarray:
+        """One z16 frame [H, W] as the policy's depth frame; raise :class:`DepthFrameError` if unusable."""
+        metres = z16_to_metres(z16, self.depth_scale_m)
+        cam = self.converter.camera
+        check_not_blinded(metres, self.converter.max_invalid_fraction)  # on the sensor's own pixels, as convert does
+        cropped = crop_to_policy_fov(metres, *self.intrinsics, cam)
+        pooled = min_pool_depth(cropped, cam.height, cam.width, cam.max_range_m)
+        return validate_depth_frame(pooled, cam, self.converter.max_invalid_fraction)
+
     def _run(self) -> None:
         while not self._stop.is_set():
             try:
-                frames = self._pipeline.wait_for_frames(1000)
+                frames = self.device.wait_for_frames(1000)
             except RuntimeError as err:  # timeout or device gone: the loop sees stale depth
                 item: DepthFrame | DepthFault = DepthFault(f"RealSense delivered no frame: {err}", time.monotonic())
             else:
                 arrival = time.monotonic()
                 depth_frame = frames.get_depth_frame()
                 try:
-                    metres = z16_to_metres(np.asanyarray(depth_frame.get_data()), self.depth_scale_m)
-                    item = DepthFrame(self.converter.convert(metres, self.hfov_deg), arrival,
+                    if not depth_frame:
+                        raise DepthFrameError("the frameset holds no depth frame")
+                    item = DepthFrame(self.convert(np.asanyarray(depth_frame.get_data())), arrival,
                                       int(depth_frame.get_frame_number()), None)
                 except DepthBlindedError as err:
                     item = DepthFault(f"{err} ({self.name})", arrival)
@@ -458,9 +586,10 @@ class RealSenseDepthSource(DepthSource):
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=2.0)
-        if self._pipeline is not None:
+        if self._started:
+            self._started = False
             try:
-                self._pipeline.stop()
+                self.device.stop()
             except RuntimeError:
                 pass
         for fd in (self._wake_r, self._wake_w):

@@ -9,7 +9,9 @@ What goes over the link:
 * out: HEARTBEAT at 1 Hz as an onboard controller (component 191, the autopilot's system
   id); COMMAND_LONG (SET_MESSAGE_INTERVAL, arm, mode, takeoff, land) one at a time, each
   retried until acknowledged; SET_POSITION_TARGET_LOCAL_NED in ``MAV_FRAME_BODY_NED`` (8)
-  with type_mask 1479 (velocity + yaw rate), the frame both PX4 and ArduPilot accept;
+  with type_mask 1479 (velocity + yaw rate), the frame both PX4 and ArduPilot accept, and,
+  to hold a point (at the goal, on the way out), in ``MAV_FRAME_LOCAL_NED`` (1) with type_mask
+  2552 (position + yaw);
   STATUSTEXT for what the pilot should know.
 * in: HEARTBEAT (PX4 or ArduPilot, mode, arming), ODOMETRY (PX4) or LOCAL_POSITION_NED +
   ATTITUDE (ArduPilot), COMMAND_ACK, and the run-time goal: SET_POSITION_TARGET_LOCAL_NED
@@ -34,6 +36,8 @@ import errno
 import math
 import os
 import re
+import select
+import socket
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -62,6 +66,14 @@ MAV_FRAME_LOCAL_NED = 1
 MAV_FRAME_BODY_NED = 8
 #: ignore position (bits 0-2), acceleration (6-8) and yaw (10): velocity + yaw rate.
 TYPE_MASK_VELOCITY_YAW_RATE = 1479
+#: ignore velocity (bits 3-5), acceleration (6-8) and yaw rate (11): position + yaw (a point to hold).
+TYPE_MASK_POSITION_YAW = 2552
+#: open() errors worth retrying until the heartbeat timeout: the autopilot's port is not there *yet*
+#: (ArduPilot SITL's TCP SERIAL ports listen only after boot; a USB serial adapter appears late).
+_RETRYABLE_OPEN_ERRNOS = {errno.ECONNREFUSED, errno.ENOENT, errno.ECONNRESET, errno.ECONNABORTED,
+                          errno.EHOSTUNREACH, errno.ENETUNREACH, errno.ETIMEDOUT, errno.EAGAIN}
+#: How long close() waits for the autopilot to take the last bytes of a TCP link (see close()).
+TCP_CLOSE_DRAIN_S = 0.5
 _TYPE_MASK_POSITION_IGNORED = 0b111
 _WORLD_VELOCITY_FRAMES = {1, 14, 16, 18}  # LOCAL_NED, MOCAP_NED, VISION_NED, ESTIM_NED
 _BODY_VELOCITY_FRAMES = {8, 9, 12}  # BODY_NED, BODY_OFFSET_NED, BODY_FRD
@@ -313,12 +325,36 @@ class AutopilotLink:
         self.setpoints_sent = 0
 
     # ------------------------------------------------------------------ connection
-    def open(self) -> None:
+    def open(self, retry_for_s: float = 0.0, on_wait=None) -> None:
         """Open the port or socket (does not wait for the autopilot).
 
         UDP goes through our own :class:`UdpEndpoint` (exclusive bind, one datagram at a time,
-        one peer); TCP and serial through pymavlink's stream connection.
+        one peer); TCP and serial through pymavlink's stream connection. A TCP connection that
+        is refused or a serial device that does not exist yet is retried every 0.5 s for
+        ``retry_for_s`` seconds (the autopilot may boot after us); ``on_wait(reason)`` is
+        called once, on the first failure. Raises :class:`LinkError` when it gives up.
         """
+        deadline = time.monotonic() + retry_for_s
+        waited = False
+        while True:
+            try:
+                self._open_once()
+                return
+            except LinkError as err:
+                cause = err.__cause__
+                code = getattr(cause, "errno", None)
+                if code is None and cause is not None and cause.args and isinstance(cause.args[0], int):
+                    code = cause.args[0]  # pyserial's SerialException(errno, text)
+                if code not in _RETRYABLE_OPEN_ERRNOS or time.monotonic() + 0.5 > deadline:
+                    if waited:
+                        raise LinkError(f"{err} (retried for {retry_for_s:g} s, --heartbeat-timeout)") from cause
+                    raise
+                if not waited and on_wait is not None:
+                    on_wait(str(err))
+                waited = True
+                time.sleep(0.5)
+
+    def _open_once(self) -> None:
         scheme, _, rest = self.connection.partition(":")
         try:
             if scheme in ("udpin", "udpout"):
@@ -326,9 +362,10 @@ class AutopilotLink:
                 self.conn = UdpEndpoint(scheme, host, int(port), 1, MAV_COMP_ID_ONBOARD_COMPUTER)
                 self.conn.relock_after_s = self.relock_after_s
             else:
+                # retries=0: one attempt; open() retries, bounded by the heartbeat timeout.
                 self.conn = mavutil.mavlink_connection(self.connection, source_system=1,
                                                        source_component=MAV_COMP_ID_ONBOARD_COMPUTER,
-                                                       dialect="common", autoreconnect=True)
+                                                       dialect="common", autoreconnect=True, retries=0)
                 # A byte stream keeps pymavlink's parser, with the verify-before-store signature check.
                 self.conn.mav = new_parser(self.conn, 1, MAV_COMP_ID_ONBOARD_COMPUTER)
         except ModuleNotFoundError as err:
@@ -354,11 +391,32 @@ class AutopilotLink:
         return fd if isinstance(fd, int) and fd >= 0 else None
 
     def close(self) -> None:
-        if self.conn is not None:
+        """Close the link; on TCP, only after the autopilot has had the last setpoints.
+
+        Closing a TCP socket that still holds unread telemetry makes the kernel send RST, and
+        the peer may then drop the bytes we sent last that it has not read yet: the final hold
+        setpoints were lost that way on ArduPilot (issue 18). So: shut down our sending side
+        (FIN after the data), read and discard until the autopilot closes its side or
+        ``TCP_CLOSE_DRAIN_S`` passes, then close.
+        """
+        if self.conn is None:
+            return
+        sock = getattr(self.conn, "port", None)
+        if self.connection.startswith("tcp:") and isinstance(sock, socket.socket):
             try:
-                self.conn.close()
+                sock.shutdown(socket.SHUT_WR)
+                deadline = time.monotonic() + TCP_CLOSE_DRAIN_S
+                sock.setblocking(False)
+                while (remaining := deadline - time.monotonic()) > 0:
+                    ready, _, _ = select.select([sock], [], [], remaining)
+                    if ready and not sock.recv(65536):
+                        break  # the autopilot closed too: it has read everything we sent
             except OSError:
                 pass
+        try:
+            self.conn.close()
+        except OSError:
+            pass
 
     def wait_for_autopilot(self, timeout_s: float) -> Heartbeat:
         """Block until an autopilot's HEARTBEAT arrives; raise :class:`LinkError` after ``timeout_s``."""
@@ -619,6 +677,16 @@ class AutopilotLink:
         self.conn.mav.set_position_target_local_ned_send(
             self.time_boot_ms(), hb.sysid, hb.compid, MAV_FRAME_BODY_NED, TYPE_MASK_VELOCITY_YAW_RATE,
             0.0, 0.0, 0.0, float(vel_fwd_m_s), 0.0, float(vel_down_m_s), 0.0, 0.0, 0.0, 0.0, float(yaw_rate_rad_s))
+        self.setpoints_sent += 1
+
+    def send_position_target(self, pos_ned, yaw_rad: float) -> None:
+        """Hold a point: a LOCAL_NED position + yaw target (type_mask 2552), which PX4 (OFFBOARD)
+        and ArduPilot (GUIDED, no GUID_TIMEOUT for positions) fly to and hold."""
+        hb = self.heartbeat
+        x, y, z = (float(v) for v in pos_ned)
+        self.conn.mav.set_position_target_local_ned_send(
+            self.time_boot_ms(), hb.sysid, hb.compid, MAV_FRAME_LOCAL_NED, TYPE_MASK_POSITION_YAW,
+            x, y, z, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, float(yaw_rad), 0.0)
         self.setpoints_sent += 1
 
     def send_statustext(self, severity: int, text: str) -> None:

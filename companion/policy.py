@@ -33,6 +33,10 @@ real camera) are read as documented: a level camera at the vehicle's centre with
 pixels (the vertical field of view from ``hfov_deg`` and the aspect), no minimum range,
 no-return pixels already ``max_range_m``, and ``task`` the defaults when absent;
 :attr:`LoadedPolicy.notes` says so, and the companion prints it.
+
+The same policy exported as ONNX (``policy.onnx``: inputs ``depth`` and ``state``, output
+``action``, ``policy.json`` in the graph's ``metadata_props``) loads through the same checks
+and runs with onnxruntime (:mod:`companion.onnx_policy`).
 """
 
 from __future__ import annotations
@@ -41,6 +45,7 @@ import json
 import math
 import warnings
 import zipfile
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -126,7 +131,7 @@ class _QuietJitDeprecation(warnings.catch_warnings):
 
 @dataclass
 class LoadedPolicy:
-    """A validated policy: the TorchScript module and what its metadata promises."""
+    """A validated policy: the TorchScript module (or onnxruntime session) and what its metadata promises."""
 
     module: object
     metadata: dict
@@ -141,6 +146,9 @@ class LoadedPolicy:
 
     def act(self, depth_m: np.ndarray, state: np.ndarray) -> np.ndarray:
         """Deterministic actions [B, 3] (float32) for a batch of observations."""
+        run_numpy = getattr(self.module, "run_numpy", None)
+        if run_numpy is not None:  # an onnxruntime session (companion.onnx_policy): no torch involved
+            return run_numpy(depth_m, state)
         import torch
 
         with torch.inference_mode():
@@ -289,9 +297,12 @@ def _check_task(task: object, path: str) -> TaskSpec:
     return TaskSpec(collision_radius_m=radius, arrival_radius_m=arrival, max_episode_steps=steps)
 
 
-def load_policy(path: str | Path, *, check_forward: bool = True) -> LoadedPolicy:
+def load_policy(path: str | Path, *, check_forward: bool = True,
+                providers: Sequence[str] | None = None) -> LoadedPolicy:
     """Load and validate a policy file; raise :class:`PolicyFileError` with the reason if invalid.
 
+    A ``.onnx`` file is the same policy as an ONNX graph (:mod:`companion.onnx_policy`), run
+    by onnxruntime with ``providers`` (default: CPU); anything else is read as TorchScript.
     With ``check_forward`` the module is run once on a blank observation and must return
     finite actions of shape [1, 3] inside its declared bounds.
     """
@@ -299,20 +310,32 @@ def load_policy(path: str | Path, *, check_forward: bool = True) -> LoadedPolicy
 
     path = str(path)
     _require(Path(path).is_file(), path, "no such policy file")
-    _require(zipfile.is_zipfile(path), path, "not a TorchScript policy file (not a zip archive: wrong or corrupted file)")
     extra = {METADATA_FILE: ""}
-    try:
-        with _QuietJitDeprecation():
-            module = torch.jit.load(path, map_location="cpu", _extra_files=extra)
-    except Exception as err:  # torch raises RuntimeError subclasses with long C++ traces
-        first_line = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise PolicyFileError(f"{path}: not a loadable TorchScript module ({first_line})") from err
+    if Path(path).suffix.lower() == ".onnx":  # the same policy as an ONNX graph, run by onnxruntime
+        from companion.onnx_policy import OnnxUnavailableError, read_onnx_policy, shape_problem
+
+        try:
+            module, extra[METADATA_FILE] = read_onnx_policy(path, providers, torch.get_num_threads())
+        except (ValueError, OnnxUnavailableError) as err:
+            raise PolicyFileError(f"{path}: {err}") from err
+    else:
+        _require(zipfile.is_zipfile(path), path,
+                 "not a TorchScript policy file (not a zip archive: wrong or corrupted file)")
+        try:
+            with _QuietJitDeprecation():
+                module = torch.jit.load(path, map_location="cpu", _extra_files=extra)
+        except Exception as err:  # torch raises RuntimeError subclasses with long C++ traces
+            first_line = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+            raise PolicyFileError(f"{path}: not a loadable TorchScript module ({first_line})") from err
     _require(bool(extra[METADATA_FILE]), path, f"no {METADATA_FILE} inside: not a swarmnav policy file")
     try:
         meta = json.loads(extra[METADATA_FILE])
     except json.JSONDecodeError as err:
         raise PolicyFileError(f"{path}: {METADATA_FILE} is not valid JSON ({err})") from err
     camera, action, period_s, task = _check_metadata(meta, path)
+    if Path(path).suffix.lower() == ".onnx":
+        problem = shape_problem(module, camera.frames, camera.height, camera.width, len(STATE_NAMES))
+        _require(problem is None, path, str(problem))
     module.eval()
     version = int(meta["format_version"])
     notes = version1_notes(meta, camera) if version == 1 else ()

@@ -18,7 +18,9 @@ switching_mode           (``--arm``) asking for OFFBOARD / GUIDED
 taking_off               (``--arm --takeoff``) PX4: climbing in OFFBOARD with velocity
                          setpoints; ArduPilot: NAV_TAKEOFF in GUIDED, nothing streamed
 flying_to_goal           the policy flies; every step may become a hold (failsafes below)
-holding_at_goal          within 0.5 m of the goal: zero-velocity setpoints
+holding_at_goal          within 0.5 m of the goal: a position target at the goal (LOCAL_NED
+                         position + yaw), so the vehicle settles on it instead of drifting on
+                         after a zero-velocity stop
 landing                  (``--land-on-arrival``) the autopilot lands; nothing sent
 landed                   disarmed on the ground
 handed_back              the pilot changed the mode: nothing sent, the mode is never requested back;
@@ -37,6 +39,17 @@ runs on its own thread (:class:`InferenceWorker`), so a slow policy cannot stall
 a late answer is discarded when it comes, and the ticks hold while it is still running.
 The loop also wakes when the inputs would go stale, so a stale-input hold goes out at once
 (an extra step between ticks), not at the next tick.
+
+Leaving on purpose (SIGTERM/SIGINT, ``--exit-on-arrival`` without landing, ``--timeout``, a
+failed step) while the companion flies the vehicle ends with :meth:`Companion._leave`: a
+position hold streamed for ``EXIT_HOLD_STREAM_S``, then the autopilot's hold mode (PX4
+AUTO.LOITER, ArduPilot BRAKE) requested and confirmed from its HEARTBEAT, then the exit. After
+a pilot's takeover no mode is ever requested.
+
+Frame stacking: each policy step pushes the newest frame *if it is newer than the last one
+pushed*; when the camera missed the period (no new frame by the tick, the newest still fresh),
+the stack is not advanced and the policy sees the same stack as at its previous step (every
+entry a distinct real frame one camera period apart, as in training), never a frame twice.
 
 The control clock ticks at the policy's control period. With ``camera_sync`` it slowly
 shifts its phase (at most 2 ms per tick) so that ticks fall just after depth frames arrive:
@@ -60,8 +73,15 @@ import numpy as np
 from companion.depth_sources import DepthFault, DepthFrame, DepthSource
 from companion.flightlog import FlightLog, RunningStats, resident_memory_mb
 from companion.mavlink_link import AutopilotLink, PendingCommand, mavlink
-from companion.flight_modes import ARDUCOPTER_GUIDED, PX4_MAIN_MODE_OFFBOARD, AutopilotKind
+from companion.flight_modes import (
+    ARDUCOPTER_GUIDED,
+    ARDUCOPTER_MODE_BY_NAME,
+    PX4_MAIN_MODE_OFFBOARD,
+    PX4_MODE_BY_NAME,
+    AutopilotKind,
+)
 from companion.observation import DepthFrameStack, build_state
+from companion.obstacle_distance import ObstacleDistancePublisher
 from companion.policy import LoadedPolicy
 from companion.recording import FlightRecorder
 from companion.sdnotify import SystemdNotifier
@@ -71,6 +91,20 @@ from companion.spec import STATE_DIM, goal_problem
 #: Below this much time before an inference's deadline, no call is started (its answer could not
 #: arrive in time); the step holds instead.
 MIN_INFERENCE_TIME_S = 0.001
+
+#: Leaving on purpose while flying: a position hold is streamed this long (at EXIT_HOLD_RATE_HZ)
+#: before the hold mode is requested and the link closed. Issue 18: zero setpoints sent only
+#: just before closing were lost with the TCP link on ArduPilot; 0.5 s of them stopped it.
+EXIT_HOLD_STREAM_S = 0.5
+EXIT_HOLD_RATE_HZ = 20.0
+#: How long to wait for the autopilot's HEARTBEAT to show the hold mode after asking for it.
+HAND_OVER_TIMEOUT_S = 3.0
+#: The mode a companion that stops commanding on purpose hands the vehicle to. PX4: AUTO.LOITER
+#: ("Hold"), which holds position without RC input. ArduCopter: BRAKE, which stops and then
+#: holds position without reading the sticks; LOITER would follow the RC throttle (SITL's
+#: default 1000 makes it descend into the ground, issue 18 item 10, and so would a pilot's
+#: stick left low). The pilot takes over from either by selecting any mode.
+HOLD_MODES = {AutopilotKind.PX4: "AUTO.LOITER", AutopilotKind.ARDUPILOT: "BRAKE"}
 
 
 class ExitCode(IntEnum):
@@ -126,6 +160,7 @@ class CompanionConfig:
     stream_rate_hz: float = 50.0
     camera_sync: bool = True
     takeoff_timeout_s: float = 60.0
+    obstacle_distance: bool = True  # publish OBSTACLE_DISTANCE per depth frame (companion.obstacle_distance)
 
 
 class ControlClock:
@@ -325,6 +360,7 @@ class Companion:
         self.low = policy.action.low_array().astype(np.float64)
         self.high = policy.action.high_array().astype(np.float64)
         self.stack = DepthFrameStack(1, policy.camera)
+        self.obstacles = ObstacleDistancePublisher(policy.camera, link) if config.obstacle_distance else None
         self.goal_ned = None if config.goal_ned is None else np.asarray(config.goal_ned, dtype=np.float64)
 
         self.phase = FlightPhase.WAITING_FOR_TELEMETRY
@@ -338,7 +374,10 @@ class Companion:
         self._link_down_after_takeover = False
         self.latest_frame: DepthFrame | None = None
         self.latest_fault: DepthFault | None = None
-        self._last_pushed_s = -math.inf
+        self._last_pushed_s = -math.inf  # when the stack last fed the policy
+        self._last_stacked_arrival_s = -math.inf  # arrival time of the newest frame in the stack
+        self._stack_seqs: list[int] = []  # the frames' seq numbers in the stack, oldest first (logged)
+        self._hold_point: tuple[np.ndarray, float] | None = None  # (goal NED, yaw) held at the goal
         self._last_hold_reason: str | None = None
         self._last_mode: tuple[int, bool] | None = None
         self._was_in_companion_mode_at_start: bool | None = None
@@ -411,6 +450,13 @@ class Companion:
                 elif (self.phase in _STREAMING and self._last_setpoint is not None
                       and now - self._last_setpoint_s > 0.2):
                     self._send(self._last_setpoint)  # keep PX4's > 2 Hz stream alive with long periods
+            try:
+                self._leave()
+            except OSError as err:  # the link broke while handing over: say so, exit as decided
+                self._event("handover", f"hand-over interrupted: link error {err}", level="error", confirmed=False)
+            self._event("exit", f"exit {int(self.exit_code)} ({self.exit_code.name}): {self.exit_reason}",
+                        level="info" if self.exit_code is ExitCode.OK else "error",
+                        code=int(self.exit_code), reason=self.exit_reason)
         except Exception as err:  # never leave the vehicle flying on our last command
             self._hold_on_the_way_out()
             self._event("exit", f"internal error: {type(err).__name__}: {err}", level="error")
@@ -440,6 +486,8 @@ class Companion:
             if isinstance(item, DepthFrame):
                 self.latest_frame, self.latest_fault = item, None
                 self.clock.frame_arrived(item.arrival_s)
+                if self.obstacles is not None:  # the autopilot's collision prevention, from every frame used
+                    self.obstacles.publish(item.depth_m)
             else:
                 if self.latest_fault is None or self.latest_fault.reason != item.reason:
                     self._event("depth_fault", item.reason, level="warning")
@@ -592,7 +640,8 @@ class Companion:
             else (sent_s - frame.arrival_s) * 1000.0,
             inference_ms=None if info.get("inference_s") is None else info["inference_s"] * 1000.0,
             tick_late_ms=None if late is None else late * 1000.0, period_ms=None if period is None else period * 1000.0,
-            extra=extra,
+            extra=extra, stacked=info.get("stacked"), stack_seqs=info.get("stack_seqs"),
+            hold_point_ned=None if command is None or not self._holding_point() else self._hold_point[0],
         )
         if self.recorder is not None and frame is not None and info.get("state") is not None:
             try:
@@ -607,8 +656,14 @@ class Companion:
         if now - self._last_summary_s >= 10.0:
             self._write_summary(final=False)
 
+    def _holding_point(self) -> bool:
+        return self.phase is FlightPhase.HOLDING_AT_GOAL and self._hold_point is not None
+
     def _send(self, command: np.ndarray) -> float:
-        self.link.send_velocity_setpoint(command[0], command[1], command[2])
+        if self._holding_point():  # at the goal: hold the point, not a zero velocity that drifts on
+            self.link.send_position_target(*self._hold_point)
+        else:
+            self.link.send_velocity_setpoint(command[0], command[1], command[2])
         sent_s = time.monotonic()
         self._last_setpoint, self._last_setpoint_s = command, sent_s
         return sent_s
@@ -828,12 +883,23 @@ class Companion:
                             f"old, stale at {self.stale_s * 1000:.0f} ms)")
             return self._hold(info)
         info["frame"] = frame
-        # After a gap in depth, start the stack afresh (as at an episode start) rather than
-        # mixing frames from before the gap with new ones.
+        # After a gap in depth (no policy step for longer than the stale limit), start the stack
+        # afresh (as at an episode start) rather than mixing frames from before the gap with new
+        # ones. Otherwise push the newest frame if the camera delivered one since the last push;
+        # if it missed this period, keep the stack as it is: a frame twice in the stack is
+        # something training never shows (the simulator renders a new frame every step).
         if now - self._last_pushed_s > self.stale_s:
             self.stack.reset(frame.depth_m)
-        else:
+            self._stack_seqs = [frame.seq] * self.policy.camera.frames
+            info["stacked"] = "reset"
+        elif frame.arrival_s > self._last_stacked_arrival_s:
             self.stack.push(frame.depth_m)
+            self._stack_seqs = self._stack_seqs[1:] + [frame.seq]
+            info["stacked"] = "pushed"
+        else:
+            info["stacked"] = "kept"  # the camera missed this period: no new frame to add
+        self._last_stacked_arrival_s = max(self._last_stacked_arrival_s, frame.arrival_s)
+        info["stack_seqs"] = list(self._stack_seqs)
         self._last_pushed_s = now
         state = build_state(odom.pos_ned[None], np.array([odom.yaw_rad]), odom.vel_ned[None],
                             np.array([odom.yaw_rate_rad_s]), self.goal_ned[None])
@@ -885,7 +951,9 @@ class Companion:
             self._pending = self.link.queue_command(mavlink.MAV_CMD_NAV_LAND, 0, 0, 0, math.nan, 0, 0, 0, label="landing")
             self._set_phase(FlightPhase.LANDING, "landing on arrival (--land-on-arrival)")
             return np.zeros(3)  # one last hold; the land mode takes over
-        self._set_phase(FlightPhase.HOLDING_AT_GOAL, "holding at the goal")
+        odom = self.link.odometry
+        self._hold_point = (self.goal_ned.copy(), float(odom.yaw_rad))  # keep the heading it arrived with
+        self._set_phase(FlightPhase.HOLDING_AT_GOAL, "holding at the goal (position target)")
         if self.config.exit_on_arrival:
             self._finish(ExitCode.OK, "arrived at the goal")
         return np.zeros(3)
@@ -976,11 +1044,124 @@ class Companion:
         self.log.event(event, message, level=level, step=self.step_index, phase=self.phase.value, **fields)
 
     def _finish(self, code: ExitCode, reason: str) -> None:
+        """Stop the loop with ``code``; :meth:`_leave` then leaves the vehicle holding and the exit is logged."""
         if self.exit_code is None:
             self.exit_code, self.exit_reason = code, reason
-            self._hold_on_the_way_out()
-            self._event("exit", f"exit {int(code)} ({code.name}): {reason}", level="info" if code is ExitCode.OK else "error",
-                        code=int(code), reason=reason)
+
+    def _in_control(self, now: float) -> bool:
+        """The autopilot follows our setpoints right now (engaged, in OFFBOARD/GUIDED, armed, link up)."""
+        hb = self.link.heartbeat
+        return (hb is not None and self.engaged and not self.taken_over and hb.in_companion_mode and hb.armed
+                and self.link.heartbeat_age_s(now) <= self.config.link_timeout_s
+                and self.phase not in (FlightPhase.LANDING, FlightPhase.LANDED, FlightPhase.HANDED_BACK,
+                                       FlightPhase.LINK_LOST))
+
+    def _leave(self) -> None:
+        """Leave on purpose without leaving the vehicle to a failsafe (issue 18, items 1 and 8).
+
+        While streaming: a hold for ``EXIT_HOLD_STREAM_S`` (a position target where the vehicle
+        is, or at the goal when holding there; zero velocity without odometry), so the last
+        setpoints cannot be the ones lost when the link closes. Then, if the companion flies
+        the vehicle, its hold mode (:data:`HOLD_MODES`) is requested, the hold streamed on until
+        the HEARTBEAT shows it (at most ``HAND_OVER_TIMEOUT_S``), and the result reported (log
+        and STATUSTEXT). A pilot's takeover is final: then nothing is sent or requested.
+        """
+        now = time.monotonic()
+        hb = self.link.heartbeat
+        if hb is None or self.taken_over or self.phase not in _STREAMING | {FlightPhase.TAKING_OFF}:
+            return
+        in_control = self._in_control(now)
+        odom = self.link.odometry
+        if self._holding_point():
+            point = self._hold_point
+        elif odom is not None and self.link.odometry_age_s(now) <= self.stale_s and self.phase is not FlightPhase.TAKING_OFF:
+            point = (odom.pos_ned.copy(), float(odom.yaw_rad))
+        else:
+            point = None
+
+        def send_hold() -> None:
+            try:
+                if point is not None:
+                    self.link.send_position_target(*point)
+                else:
+                    self.link.send_velocity_setpoint(0.0, 0.0, 0.0)
+            except OSError:
+                pass
+
+        def pump(until_s: float, done=lambda: False) -> bool:
+            """Stream the hold and serve the link until ``until_s`` or ``done()``; True if done."""
+            next_send, next_heartbeat = time.monotonic(), time.monotonic() + 1.0
+            while True:
+                now_s = time.monotonic()
+                self._read_link(now_s)
+                self.link.service_commands(now_s)
+                if done():
+                    return True
+                if now_s >= until_s:
+                    return False
+                if now_s >= next_send:
+                    send_hold()
+                    next_send += 1.0 / EXIT_HOLD_RATE_HZ
+                if now_s >= next_heartbeat:
+                    self.link.send_heartbeat()
+                    next_heartbeat += 1.0
+                fd = self.link.fileno()
+                wait = max(0.0, min(next_send, until_s) - time.monotonic())
+                if fd is not None:
+                    select.select([fd], [], [], wait)
+                else:
+                    time.sleep(min(wait, 0.005))
+
+        what = "a position hold" if point is not None else "zero velocity"
+        self._event("leaving", f"leaving: streaming {what} for {EXIT_HOLD_STREAM_S:g} s"
+                    + (f", then handing over to {HOLD_MODES[hb.kind]}" if in_control else ""),
+                    hold_point_ned=None if point is None else point[0], in_control=in_control)
+        pump(time.monotonic() + EXIT_HOLD_STREAM_S)
+        if not in_control:
+            return
+        self._hand_over(pump)
+
+    def _hand_over(self, pump) -> None:
+        """Ask for the hold mode while streaming the hold; report whether the autopilot got there."""
+        hb = self.link.heartbeat
+        mode = HOLD_MODES[hb.kind]
+        if hb.kind is AutopilotKind.PX4:
+            main, sub = PX4_MODE_BY_NAME[mode]
+        else:
+            main, sub = ARDUCOPTER_MODE_BY_NAME[mode], 0
+        self.link.cancel_commands()
+        pending = self.link.queue_command(mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+                                          main, sub, label=f"switch to {mode}")
+        started = time.monotonic()
+
+        def settled() -> bool:
+            current = self.link.heartbeat
+            if current.mode == mode:
+                return True
+            if not current.in_companion_mode:  # the pilot chose another mode meanwhile: theirs, final
+                return True
+            return pending.done and not pending.accepted
+
+        pump(started + HAND_OVER_TIMEOUT_S, settled)
+        current = self.link.heartbeat
+        elapsed = time.monotonic() - started
+        if current.mode == mode:
+            message, level = f"handed the vehicle to {mode} ({elapsed:.2f} s): holding position", "info"
+        elif not current.in_companion_mode:
+            message, level = f"the pilot selected {current.mode} while handing over: left to the pilot", "warning"
+        else:
+            why = pending.describe_failure() if pending.done else f"no {mode} in the HEARTBEAT within {HAND_OVER_TIMEOUT_S:g} s"
+            tail = ("PX4's offboard-loss failsafe (COM_OBL_RC_ACT) acts after COM_OF_LOSS_T" if hb.kind is AutopilotKind.PX4
+                    else "ArduPilot holds the last position target in GUIDED")
+            message, level = f"hand-over to {mode} failed: {why}; {tail}", "error"
+        self.link.cancel_commands()
+        self._event("handover", message, level=level, mode=current.mode, requested=mode,
+                    confirmed=current.mode == mode, seconds=round(elapsed, 3))
+        try:
+            self.link.send_statustext(mavlink.MAV_SEVERITY_INFO if level == "info" else mavlink.MAV_SEVERITY_WARNING,
+                                      f"companion: exit, vehicle in {current.mode}")
+        except OSError:
+            pass
 
     def _hold_on_the_way_out(self) -> None:
         """Leave the vehicle stopped: a few zero-velocity setpoints before the stream ends."""
@@ -1011,5 +1192,6 @@ class Companion:
             overruns=self.overruns, missed_ticks=self.clock.missed_ticks,
             setpoints_sent=self.link.setpoints_sent, refused_unsigned=self.link.refused_unsigned,
             dropped_foreign_address=self.link.dropped_foreign_address, dropped_foreign_link=self.link.dropped_foreign_link,
+            obstacle_distance_sent=self.obstacles.sent if self.obstacles else 0,
             phase=self.phase.value, **resident_memory_mb(),
         )

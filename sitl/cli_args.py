@@ -39,6 +39,14 @@ class ArgumentParser(argparse.ArgumentParser):
     def error(self, message: str):  # noqa: D102 - argparse's API
         self.exit(2, f"{self.prog}: error: {' '.join(message.split())} (see --help)\n")
 
+    def parse_known_args(self, args=None, namespace=None):  # noqa: D102 - argparse's API
+        import sys
+
+        from companion.cli import join_negative_values  # --start -24,0,-8 taken as written
+
+        argv = sys.argv[1:] if args is None else list(args)
+        return super().parse_known_args(join_negative_values(self, argv), namespace)
+
 
 def positive_int(text: str) -> int:
     """An integer >= 1."""

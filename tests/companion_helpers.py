@@ -83,6 +83,10 @@ def _ephemeral_low() -> int:
         return 32768
 
 
+#: every port free_udp_ports has handed out in this process
+_HANDED_OUT: set[int] = set()
+
+
 def free_udp_ports(count: int) -> list[int]:
     """``count`` free UDP ports on 127.0.0.1, below the ephemeral range.
 
@@ -95,7 +99,9 @@ def free_udp_ports(count: int) -> list[int]:
     ports: list[int] = []
     while len(ports) < count:
         port = rng.randrange(low, high)
-        if port in ports or port in (14540, 14550, 14640):
+        # never the same port twice in one test session: a free port handed to one test's vehicle
+        # is not bound until it starts, and another test must not be given it meanwhile
+        if port in ports or port in _HANDED_OUT or port in (14540, 14550, 14640):
             continue
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
             try:
@@ -103,6 +109,7 @@ def free_udp_ports(count: int) -> list[int]:
             except OSError:
                 continue
         ports.append(port)
+    _HANDED_OUT.update(ports)
     return ports
 
 

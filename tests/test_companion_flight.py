@@ -187,7 +187,9 @@ def test_without_arm_the_companion_streams_holds_until_the_pilot_selects_offboar
     assert code == 0, rig.procs.stderr("companion")[-3000:]
     modes = [r for r in rig.vehicle_records() if r["event"] == "mode"]
     assert [m["mode"] for m in modes][:1] == ["OFFBOARD"] and "from 255/190" in modes[0]["why"]  # not the companion
-    assert not any(r["event"] == "mode" and "191" in r.get("why", "") for r in rig.vehicle_records())
+    # The companion never engages by itself; its one mode request is the hand-over to Hold when it
+    # leaves on purpose (--exit-on-arrival), so PX4 does not fly its offboard-loss failsafe (issue 18).
+    assert [m["mode"] for m in modes if "191" in m.get("why", "")] == ["AUTO.LOITER"]
     (arrived,) = _events(rig, "arrived")
     assert arrived["dist_m"] <= 0.5
 

@@ -20,7 +20,7 @@ from sitl.learn.trainer import make_trainer
 
 
 def test_one_uav_learns_to_reach_its_goal(tmp_path):
-    cfg, agent_cfg, _ = parse_args([
+    cfg, agent_cfg, _, _ = parse_args([
         "--scenario", "circle", "--circle-radius-m", "3", "--num-uavs", "1", "--num-worlds", "16",
         "--image-size", "16", "--hidden-dim", "128", "--max-episode-steps", "40", "--arrival-radius-m", "1.5",
         "--init-steps", "500", "--total-updates", "800",

@@ -125,17 +125,17 @@ def test_vae_learns_and_freezes():
 
 
 def test_presets_and_flags():
-    cfg, agent_cfg, resume = parse_args([])
+    cfg, agent_cfg, resume, _ = parse_args([])
     assert cfg.preset == "fast" and cfg.method == "sac_ae" and cfg.scenario == "random" and cfg.num_uavs == 8
     assert agent_cfg.critic_tau == 0.01 and agent_cfg.encoder_tau == 0.05
     assert (agent_cfg.hidden_dim, agent_cfg.init_temperature, agent_cfg.n_step) == (1024, 0.01, 5)
-    paper, paper_agent, _ = parse_args(["--preset", "paper"])
+    paper, paper_agent, _, _ = parse_args(["--preset", "paper"])
     assert (paper_agent.hidden_dim, paper_agent.init_temperature, paper_agent.n_step) == (1024, 0.1, 1)
     assert (paper.replay_capacity, paper.max_episodes, paper.updates_per_episode, paper.batch_size) == (20000, 200, 400, 128)
     assert paper.num_worlds == 1 and paper.total_updates == 0
-    override, _, _ = parse_args(["--preset", "paper", "--max-episodes", "3"])
+    override, _, _, _ = parse_args(["--preset", "paper", "--max-episodes", "3"])
     assert override.max_episodes == 3 and override.updates_per_episode == 400
-    _, cnn, _ = parse_args(["--method", "cnn", "--critic-lr", "3e-4"])
+    _, cnn, _, _ = parse_args(["--method", "cnn", "--critic-lr", "3e-4"])
     assert cnn.method == "cnn" and cnn.critic_lr == 3e-4
 
 

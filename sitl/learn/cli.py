@@ -29,9 +29,10 @@ import time
 from dataclasses import fields, replace
 from pathlib import Path
 
-from sitl.cli_args import ArgumentParser, finite_float, integer
+from sitl.cli_args import ArgumentParser, finite_float, integer, positive_float
 from sitl.learn.agent import AgentConfig
 from sitl.learn.config import PRESETS, TrainConfig, resolve_configs
+from sitl.learn.recipe import RECIPE_FILE, Recipe, scaled_stages
 from sitl.learn.trainer import make_trainer
 
 PROG = "python -m sitl.train"
@@ -65,7 +66,16 @@ def build_parser(preset: str = TrainConfig.preset) -> argparse.ArgumentParser:
     """The parser, its help showing ``preset``'s resolved defaults (as CleanRL's dataclass CLIs do)."""
     train_defaults, agent_defaults = resolve_configs({"preset": preset}, {})
     parser = ArgumentParser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--resume", metavar="RUN_DIR", default=None, help="continue the run in RUN_DIR from its checkpoint")
+    parser.add_argument("--resume", metavar="RUN_DIR", default=None,
+                        help="continue the run (or recipe) in RUN_DIR from its checkpoint")
+    stages = PRESETS[preset].get("stages")
+    if stages:
+        lines = [f"  stage {i + 1} '{st.name}': {st.description}; "
+                 + ", ".join(f"{k}={v}" for k, v in {**st.train, **st.agent}.items()) for i, st in enumerate(stages)]
+        parser.epilog = f"preset {preset} is a recipe of {len(stages)} stages (sitl.learn.recipe):\n" + "\n".join(lines)
+    parser.add_argument("--recipe-scale", type=positive_float, default=None, metavar="F",
+                        help="recipe presets: multiply every stage's updates and validation interval by F "
+                             "(e.g. 0.01 for a quick trial of the whole recipe; default 1)")
     _add_dataclass_flags(parser, TrainConfig, f"training (defaults: preset {preset})",
                          dataclasses.asdict(train_defaults))
     _add_dataclass_flags(parser, AgentConfig,
@@ -74,11 +84,13 @@ def build_parser(preset: str = TrainConfig.preset) -> argparse.ArgumentParser:
     return parser
 
 
-def parse_args(argv: list[str] | None = None) -> tuple[TrainConfig, AgentConfig, str | None]:
-    """Build the two configs: defaults, then the preset, then explicit flags."""
+def parse_args(argv: list[str] | None = None) -> tuple[TrainConfig, AgentConfig, str | None, dict]:
+    """The two configs (defaults, then the preset, then explicit flags), ``--resume``, and for recipes
+    ``{"scale": --recipe-scale or None, "explicit": the config fields given on the command line}``."""
     parser = build_parser(_preset_of(argv))
     args = vars(parser.parse_args(argv))
     resume = args.pop("resume")
+    scale = args.pop("recipe_scale")
     train_names = {f.name for f in fields(TrainConfig)}
     train_args = {k: v for k, v in args.items() if k in train_names}
     agent_args = {k: v for k, v in args.items() if k not in train_names}
@@ -86,7 +98,7 @@ def parse_args(argv: list[str] | None = None) -> tuple[TrainConfig, AgentConfig,
         train_cfg, agent_cfg = resolve_configs(train_args, agent_args)
     except ValueError as err:
         parser.error(str(err))
-    return train_cfg, agent_cfg, resume
+    return train_cfg, agent_cfg, resume, {"scale": scale, "explicit": frozenset(train_args) | frozenset(agent_args)}
 
 
 def default_run_dir(cfg: TrainConfig) -> Path:
@@ -94,18 +106,38 @@ def default_run_dir(cfg: TrainConfig) -> Path:
     return Path("runs") / f"{cfg.method}-{cfg.scenario}-{cfg.density}-s{cfg.seed}-{stamp}"
 
 
+def _run_recipe(cfg: TrainConfig, agent_cfg: AgentConfig, run_dir: Path, scale: float | None,
+                explicit: frozenset[str]) -> int:
+    """Run (or resume: ``scale`` None) the recipe of ``cfg.preset`` in ``run_dir``."""
+    preset = PRESETS[cfg.preset]
+    state_path = run_dir / RECIPE_FILE
+    if scale is None:  # resuming: as the recipe was started
+        state = json.loads(state_path.read_text()) if state_path.is_file() else {}
+        scale, explicit = state.get("scale", 1.0), frozenset(state.get("explicit", ()))
+    recipe = Recipe(cfg, agent_cfg, preset["stages"], run_dir, explicit=explicit, scale=scale,
+                    **preset.get("recipe", {}))
+    try:
+        recipe.run()
+    except (FileNotFoundError, ValueError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
-    cfg, agent_cfg, resume = parse_args(argv)
+    cfg, agent_cfg, resume, recipe_args = parse_args(argv)
     if resume:
         run_dir = Path(resume)
-        if not (run_dir / "checkpoint.pt").is_file():
-            print(f"error: {run_dir} has no checkpoint.pt to resume from", file=sys.stderr)
-            return 2
         try:
             saved = json.loads((run_dir / "config.json").read_text())
             cfg, agent_cfg = TrainConfig(**saved["train"]), AgentConfig(**saved["agent"])
         except (OSError, ValueError, KeyError, TypeError) as err:
             print(f"error: cannot resume {run_dir}: its config.json is missing or invalid ({err})", file=sys.stderr)
+            return 2
+        if "stages" in PRESETS[cfg.preset]:
+            return _run_recipe(cfg, agent_cfg, run_dir, None, frozenset())  # each stage resumes from its checkpoint
+        if not (run_dir / "checkpoint.pt").is_file():
+            print(f"error: {run_dir} has no checkpoint.pt to resume from", file=sys.stderr)
             return 2
     else:
         run_dir = Path(cfg.run_dir) if cfg.run_dir else default_run_dir(cfg)
@@ -121,6 +153,8 @@ def main(argv: list[str] | None = None) -> int:
         except OSError as err:
             print(f"error: cannot create the run directory {run_dir}: {err.strerror}", file=sys.stderr)
             return 2
+    if "stages" in PRESETS[cfg.preset]:
+        return _run_recipe(cfg, agent_cfg, run_dir, recipe_args["scale"] or 1.0, recipe_args["explicit"])
     try:
         trainer = make_trainer(cfg, agent_cfg, run_dir, resume=bool(resume))
     except (FileNotFoundError, ValueError) as err:

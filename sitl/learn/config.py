@@ -19,6 +19,23 @@ from sitl.sim.camera import StereoNoise
 from sitl.sim.config import (CIRCLE_RADIUS_M, TRAINING_SCENARIOS, RewardConfig, ScenarioConfig, SimConfig,
                              density_from_name)
 
+@dataclass(frozen=True)
+class RecipeStage:
+    """One stage of a training recipe (:mod:`sitl.learn.recipe`): a training run with these overrides.
+
+    ``train``/``agent`` override the recipe's :class:`TrainConfig`/:class:`sitl.learn.agent.AgentConfig`
+    fields (e.g. scenario mix, total updates, learning rates). ``rescore_scenes`` matter for the
+    last stage only: the scenes its best snapshots are flown again in before the export, as
+    ``(name, scenario, UAVs, density)`` rows of :func:`sitl.learn.rescore.scenes_of`.
+    """
+
+    name: str
+    description: str
+    train: dict = field(default_factory=dict)
+    agent: dict = field(default_factory=dict)
+    rescore_scenes: tuple = (("random-medium", "random", 8, "medium"),)
+
+
 def _param(default, help: str):
     return field(default=default, metadata={"help": help})
 
@@ -129,7 +146,7 @@ TRAIN_INT_RANGES = (
 
 #: Each preset sets training and agent fields; explicit flags override it. The dataclass
 #: defaults are the fast preset's training values and the paper's agent values.
-PRESETS: dict[str, dict[str, dict]] = {
+PRESETS: dict[str, dict] = {
     # Measured choices for a 2-core CPU (docs/training.md): 32x32 images (the paper's 1024
     # hidden units stay: at 32x32 they cost only ~4 % more than 256), a lower initial temperature
     # (the reference's 0.1 is tuned for DMC rewards of ~1 per step; here progress pays
@@ -140,6 +157,29 @@ PRESETS: dict[str, dict[str, dict]] = {
                         "total_updates": 0, "updates_per_episode": 400, "updates_per_env_step": 0.0,
                         "init_steps": 1_000, "avoid_counts_ground": True},
               "agent": {}},
+    # The bundled models/policy.pt's curriculum (models/README.md) as one recipe: the paper's
+    # medium random scene, then mixes of random and circle episodes at falling learning rates;
+    # the last stage's best snapshots are rescored on 200 validation episodes before export.
+    "bundle-paper": {
+        "train": {"eval_episodes": 40},
+        "agent": {"init_temperature": 0.01, "n_step": 5},
+        "recipe": {"rescore_top": 3, "rescore_episodes": 200},
+        "stages": (
+            RecipeStage("random", "paper medium random scene",
+                        {"scenario": "random", "total_updates": 7_500, "eval_every_updates": 2_500}),
+            RecipeStage("mixed50", "50 % circle episodes: learns the roundabout large circles need",
+                        {"scenario": "mixed", "circle_fraction": 0.5, "total_updates": 5_000,
+                         "eval_every_updates": 1_000, "eval_episodes": 30}),
+            RecipeStage("mixed30", "30 % circles at learning rates 3e-4",
+                        {"scenario": "mixed", "circle_fraction": 0.3, "total_updates": 5_000,
+                         "eval_every_updates": 500, "eval_episodes": 60},
+                        {"actor_lr": 3e-4, "critic_lr": 3e-4, "encoder_lr": 3e-4, "decoder_lr": 3e-4}),
+            RecipeStage("mixed15", "15 % circles at learning rates 1e-4: wins back random-scene success",
+                        {"scenario": "mixed", "circle_fraction": 0.15, "total_updates": 10_000,
+                         "eval_every_updates": 1_000, "eval_episodes": 100},
+                        {"actor_lr": 1e-4, "critic_lr": 1e-4, "encoder_lr": 1e-4, "decoder_lr": 1e-4}),
+        ),
+    },
 }
 
 

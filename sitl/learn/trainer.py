@@ -431,9 +431,14 @@ class Trainer:
         self.save_checkpoint()
         return self.finish()
 
-    def finish(self) -> Path:
-        """Final evaluation on unseen seeds, then export policy.pt with its provenance."""
+    def finish(self, recipe: dict | None = None) -> Path:
+        """Final evaluation on unseen seeds, then export policy.pt with its provenance.
+
+        ``recipe``: the stages of the recipe this run ends (:mod:`sitl.learn.recipe`), recorded in
+        the provenance with the recipe's wall time from its first update to this export.
+        """
         cfg, k = self.cfg, self.counters
+        finish_started = time.perf_counter()
         if cfg.select_best and cfg.eval_every_updates and k["updates"] not in self._validated_updates():
             # The last networks are candidates too, also when the run does not end on a validation.
             self.validate(write=self.log)
@@ -465,6 +470,11 @@ class Trainer:
             key = "evaluation" if i == 0 else f"evaluation_{name}"
             provenance[key] = {"episodes": cfg.final_eval_episodes, "seed": EVAL_SEED_OFFSET + cfg.seed,
                                "scenario": name, "density": cfg.density, **summary}
+        if recipe is not None:
+            recipe = dict(recipe)
+            before_eval = recipe.pop("wall_time_s_before_final_evaluation")
+            recipe["wall_time_s"] = round(before_eval + time.perf_counter() - finish_started, 1)
+            provenance["recipe"] = recipe
         path = self.run_dir / "policy.pt"
         task = TaskSpec(collision_radius_m=self.sim_config.collision_radius_m,
                         arrival_radius_m=self.sim_config.reward.arrival_radius_m,

@@ -17,10 +17,15 @@ start mode (ground/airborne)   POSCTL / AUTO.LOITER                STABILIZE / L
 companion mode                 OFFBOARD (6), accepted only after   GUIDED (4), any time
                                >= 1 s of setpoints at > 2 Hz
 setpoint loss                  OFFBOARD -> AUTO.LOITER after 1 s   GUIDED stops (zero velocity) after
-                                                                   3 s, stays GUIDED
+                               (COM_OF_LOSS_T)                     GUID_TIMEOUT (3 s), stays GUIDED;
+                                                                   a position target never times out
+hold modes (hand-back)         AUTO.LOITER (Hold)                  LOITER, BRAKE, POSHOLD: hold
+                                                                   position (RC sticks centred)
 setpoint frames accepted       LOCAL_NED (1), BODY_NED (8);        LOCAL_NED (1), LOCAL_OFFSET_NED
                                9 and 12 dropped                    (7), BODY_NED (8), BODY_OFFSET_NED
                                                                    (9); 12 dropped
+position targets               LOCAL_NED (1), position bits        LOCAL_NED (1), position bits
+                               only: flown to and held             only: flown to and held
 odometry                       ODOMETRY (child_frame_id            LOCAL_POSITION_NED + ATTITUDE
                                LOCAL_NED, or BODY_FRD as before    (ODOMETRY refused)
                                PX4 1.14), LOCAL_POSITION_NED,
@@ -38,7 +43,9 @@ pixels), SYSTEM_MAVLINK_SIGNAL (105) silences the onboard link both ways; type O
 restores. A mode or arming change is announced with an immediate HEARTBEAT.
 
 The kinematic dynamics track forward speed, down speed and yaw rate; a lateral component of
-a velocity setpoint is not flown (the swarmnav policy never commands one).
+a velocity setpoint is not flown (the swarmnav policy never commands one), and a position
+target is flown to along the heading (a P law on the along-track and vertical errors, the
+heading kept or turned to the target's yaw), so a lateral offset from it stays.
 """
 
 from __future__ import annotations
@@ -75,7 +82,10 @@ HOME_ALT_AMSL_M = 488.0
 OFFBOARD_STREAM_MIN_S = 1.0  # PX4: setpoints for this long before OFFBOARD is accepted
 SETPOINT_GAP_MAX_S = 0.5  # > 2 Hz: a longer gap restarts the stream
 OFFBOARD_LOSS_S = 1.0  # PX4 COM_OF_LOSS_T
-GUIDED_TIMEOUT_S = 3.0  # ArduCopter: velocity target timeout in GUIDED
+GUIDED_TIMEOUT_S = 3.0  # ArduCopter GUID_TIMEOUT default: velocity target timeout in GUIDED
+POSITION_GAIN_1_S = 0.8  # position target: commanded speed per metre of error (a P law, both flavours)
+POSITION_MAX_SPEED_M_S = 3.0  # position target: the fastest approach (horizontal)
+POSITION_MAX_CLIMB_M_S = 1.5  # position target: the fastest climb or descent
 TAKEOFF_SPEED_M_S = 1.5  # PX4 MPC_TKO_SPEED / ArduCopter WPNAV_SPEED_UP-like
 LAND_SPEED_M_S = 0.7  # PX4 MPC_LAND_SPEED (ArduCopter LAND_SPEED is 0.5)
 PX4_DEFAULT_TAKEOFF_ALT_M = 2.5  # MIS_TAKEOFF_ALT
@@ -145,6 +155,8 @@ class SimAutopilot:
             self.mode = "LOITER" if airborne else "STABILIZE"
         self.setpoint_frd = np.zeros(3)  # (vel_fwd, vel_down, yaw_rate) from the last setpoint
         self.setpoint_yaw_rad: float | None = None
+        self.setpoint_pos_ned: np.ndarray | None = None  # a position target (None: velocity setpoints)
+        self.guided_timeout_s = GUIDED_TIMEOUT_S  # ArduPilot GUID_TIMEOUT (sitl.vehicle --guid-timeout)
         self.last_setpoint_s = -math.inf
         self.stream_start_s = -math.inf
         self.setpoints_received = 0
@@ -160,7 +172,10 @@ class SimAutopilot:
         self._guided_takeoff = False  # ArduCopter: NAV_TAKEOFF in GUIDED is climbing
         self._yaw = 0.0  # heading at the last update (for NED setpoints)
         self._body: Body | None = None
+        self._last_target_kind = "velocity"
         self.mode_changes: list[tuple[float, str, str]] = []
+        self.obstacle_distance_received = 0  # OBSTACLE_DISTANCE messages (the autopilot's proximity input)
+        self._obstacle_window: tuple[float, int] | None = None  # (start, count) of the current 1 s log window
 
     # ================================================================== helpers
     def _default_streams(self) -> dict[int, float]:
@@ -192,6 +207,7 @@ class SimAutopilot:
         self.mode_changes.append((time.time(), old, mode))
         self.guided_velocity_active = False
         self.guided_timed_out = False
+        self.setpoint_pos_ned = None  # a new mode starts without a target (as GUIDED does on entry)
         self._heartbeat_now = True
         self.events("mode", vehicle=self.index, mode=mode, previous=old, why=why)
 
@@ -227,6 +243,26 @@ class SimAutopilot:
             self.events("set_mode_msg", vehicle=self.index, custom_mode=msg.custom_mode, accepted=ok)
         elif kind == "SET_POSITION_TARGET_LOCAL_NED" and target_sys == self.sysid:
             self._on_setpoint(msg, now_s)
+        elif kind == "OBSTACLE_DISTANCE":
+            self._on_obstacle_distance(msg, now_s)
+
+    def _on_obstacle_distance(self, msg, now_s: float) -> None:
+        """Count OBSTACLE_DISTANCE and log, once a second, its rate and the latest message's bins.
+
+        What a real autopilot's proximity driver would read; the simulated vehicle does not avoid.
+        """
+        self.obstacle_distance_received += 1
+        if self._obstacle_window is None:  # the first message starts the window (intervals are counted)
+            self._obstacle_window = (now_s, 0)
+            return
+        start, count = self._obstacle_window
+        count += 1
+        if now_s - start >= 1.0:
+            self.events("obstacle_distance", vehicle=self.index, messages=count, rate_hz=round(count / (now_s - start), 2),
+                        frame=msg.frame, angle_offset_deg=msg.angle_offset, increment_deg=msg.increment_f or msg.increment,
+                        min_distance_cm=msg.min_distance, max_distance_cm=msg.max_distance, distances_cm=list(msg.distances))
+            start, count = now_s, 0
+        self._obstacle_window = (start, count)
 
     def _ack(self, link: MavlinkUdpEndpoint, msg, result: int) -> None:
         link.mav.command_ack_send(msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())
@@ -384,10 +420,19 @@ class SimAutopilot:
                 self.events("setpoint_dropped", vehicle=self.index, frame=frame, reason="coordinate frame not accepted")
             return
         mask = msg.type_mask
-        if mask & 0b111000:  # velocity not given: position-only targets are not simulated
+        position_target = not mask & 0b111 and mask & 0b111000 == 0b111000
+        if position_target:
+            if frame != 1 or not self._on_position_target(msg, now_s):
+                if -2 not in self.dropped_frames_warned:
+                    self.dropped_frames_warned.add(-2)
+                    self.events("setpoint_dropped", vehicle=self.index, frame=frame,
+                                reason="position targets are simulated in LOCAL_NED (1) with finite x, y, z only")
+            return
+        if mask & 0b111000:  # neither velocity nor a pure position target: not simulated
             if -1 not in self.dropped_frames_warned:
                 self.dropped_frames_warned.add(-1)
-                self.events("setpoint_dropped", vehicle=self.index, frame=frame, reason="only velocity setpoints are simulated")
+                self.events("setpoint_dropped", vehicle=self.index, frame=frame,
+                            reason="only velocity setpoints and position targets are simulated")
             return
         vel = np.array([msg.vx, msg.vy, msg.vz], dtype=np.float64)
         if not np.all(np.isfinite(vel)):
@@ -405,6 +450,24 @@ class SimAutopilot:
         self.setpoint_frd = np.array([np.clip(vel_fwd, -MAX_SPEED_M_S, MAX_SPEED_M_S),
                                       np.clip(vel[2], -MAX_SPEED_M_S, MAX_SPEED_M_S),
                                       np.clip(yaw_rate, -MAX_YAW_RATE_RAD_S, MAX_YAW_RATE_RAD_S)])
+        self.setpoint_pos_ned = None
+        self._setpoint_received(now_s)
+
+    def _on_position_target(self, msg, now_s: float) -> bool:
+        """A LOCAL_NED position target (yaw too unless masked); False if it cannot be flown."""
+        pos = np.array([msg.x, msg.y, msg.z], dtype=np.float64)
+        if not np.all(np.isfinite(pos)):
+            return False
+        self.setpoint_pos_ned = pos
+        self.setpoint_yaw_rad = msg.yaw if not msg.type_mask & 0b10000000000 and math.isfinite(msg.yaw) else None
+        self.setpoint_frd = np.zeros(3)
+        if self._last_target_kind != "position":  # logged when the target kind changes, not every message
+            self.events("position_target", vehicle=self.index, pos_ned=pos.round(3).tolist(), mode=self.mode)
+        self._setpoint_received(now_s)
+        return True
+
+    def _setpoint_received(self, now_s: float) -> None:
+        self._last_target_kind = "position" if self.setpoint_pos_ned is not None else "velocity"
         if now_s - self.last_setpoint_s > SETPOINT_GAP_MAX_S:
             self.stream_start_s = now_s
         self.last_setpoint_s = now_s
@@ -414,6 +477,17 @@ class SimAutopilot:
             if self.guided_timed_out:
                 self.guided_timed_out = False
                 self.events("guided_resumed", vehicle=self.index)
+
+    def _position_command(self, body: Body) -> np.ndarray:
+        """FRD (fwd, down, yaw rate) flying to and holding :attr:`setpoint_pos_ned` (a P law)."""
+        error = self.setpoint_pos_ned - body.pos_ned
+        along = float(ned_to_frd(error, body.yaw_rad)[0])
+        fwd = float(np.clip(POSITION_GAIN_1_S * along, -POSITION_MAX_SPEED_M_S, POSITION_MAX_SPEED_M_S))
+        down = float(np.clip(POSITION_GAIN_1_S * error[2], -POSITION_MAX_CLIMB_M_S, POSITION_MAX_CLIMB_M_S))
+        yaw_rate = 0.0
+        if self.setpoint_yaw_rad is not None:
+            yaw_rate = float(np.clip(2.0 * float(wrap_angle_rad(self.setpoint_yaw_rad - body.yaw_rad)), -1.0, 1.0))
+        return np.array([fwd, down, yaw_rate])
 
     # ================================================================== flying
     def velocity_command(self, now_s: float, body: Body) -> tuple[np.ndarray, bool]:
@@ -429,6 +503,8 @@ class SimAutopilot:
         if self.in_companion_mode:
             if self.kind is AutopilotKind.ARDUPILOT and (not self.guided_velocity_active or self.guided_timed_out):
                 return np.zeros(3), self.airborne
+            if self.setpoint_pos_ned is not None:
+                return self._position_command(body), self.airborne or self.setpoint_pos_ned[2] < body.pos_ned[2] - 0.05
             cmd = self.setpoint_frd.copy()
             if self.setpoint_yaw_rad is not None:
                 error = float(wrap_angle_rad(self.setpoint_yaw_rad - body.yaw_rad))
@@ -445,9 +521,11 @@ class SimAutopilot:
             self.set_mode("AUTO.LOITER", "failsafe: offboard setpoints lost for 1 s")
             self.statustext(mavlink.MAV_SEVERITY_WARNING, "Failsafe: offboard signal lost, holding")
         if (self.kind is AutopilotKind.ARDUPILOT and self.mode == "GUIDED" and self.guided_velocity_active
-                and not self.guided_timed_out and now_s - self.last_setpoint_s > GUIDED_TIMEOUT_S):
+                and self.setpoint_pos_ned is None  # GUID_TIMEOUT is for velocity targets: a position is held
+                and not self.guided_timed_out and now_s - self.last_setpoint_s > self.guided_timeout_s):
             self.guided_timed_out = True
-            self.events("guided_timeout", vehicle=self.index, why="no setpoint for 3 s: stopping")
+            self.events("guided_timeout", vehicle=self.index,
+                        why=f"no setpoint for GUID_TIMEOUT {self.guided_timeout_s:g} s: stopping")
         if self.mode == "AUTO.TAKEOFF" and alt >= self.takeoff_alt_m - 0.1:
             self.set_mode("AUTO.LOITER", "takeoff complete")
         if self._guided_takeoff and (alt >= self.takeoff_alt_m - 0.1 or self.mode != "GUIDED"):

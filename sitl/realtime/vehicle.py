@@ -2,6 +2,7 @@
 
     python -m sitl.vehicle --n 2                       # PX4 flavour, ports 14540, 14541
     python -m sitl.vehicle --n 1 --autopilot ardupilot
+    python -m sitl.vehicle --n 2 --autopilot ardupilot --transport tcp   # TCP 5762, 5772 (SITL SERIAL1)
 
 Runs N vehicles in one simulated world (the simulator's dynamics backend, raycast depth
 camera and collision checks) in real time. Vehicle ``i`` (system id ``i + 1``):
@@ -9,6 +10,9 @@ camera and collision checks) in real time. Vehicle ``i`` (system id ``i + 1``):
 * speaks MAVLink 2 to its companion: it sends from an ephemeral local UDP port to
   ``HOST:base-port + i`` (PX4 SITL's onboard port 14540 + i), where ``companion --connect
   udp:14540`` listens, and takes the companion's messages on that local port;
+* or, with ``--transport tcp``, listens like ArduPilot SITL's SERIAL1 port: TCP
+  ``HOST:base-port + 10*i`` (default base 5762: 5762, 5772, ...), one client at a time, where
+  ``companion --connect tcp:HOST:5762`` connects;
 * optionally talks to a ground station the same way at ``HOST:gcs-port`` (QGroundControl's
   14550; all vehicles share it), and routes messages between the two links;
 * sends its rendered depth frames to ``HOST:depth-port + i`` (format:
@@ -54,8 +58,10 @@ from sitl.realtime.event_log import EventLog
 from sitl.realtime.loop import serve
 from sitl.realtime.mavlink_autopilot import Body, SimAutopilot
 from sitl.realtime.depth_transport import DEPTH_BASE_PORT
+from sitl.realtime.tcp_endpoint import ARDUPILOT_INSTANCE_PORT_STEP, ARDUPILOT_SERIAL1_BASE_PORT, MavlinkTcpServer
 from sitl.realtime.udp_endpoint import GCS_PORT, PX4_ONBOARD_BASE_PORT, MavlinkUdpEndpoint
 
+MAV_COMP_ID_AUTOPILOT1 = 1
 PHYSICS_DT_S = 0.02
 MAX_PHYSICS_STEPS_PER_PASS = 5  # more than 0.1 s behind: drop the backlog, stay real time
 HARD_LANDING_M_S = 2.0
@@ -85,10 +91,16 @@ class VehiclesConfig:
     signing_key: bytes | None = None
     odometry_child_frame: str = "local_ned"
     collision_radius_m: float = DEFAULT_TASK_SPEC.collision_radius_m
+    transport: str = "udp"  # "tcp": vehicle i listens on TCP host:base_port + 10*i (ArduPilot SITL SERIAL1)
+    guided_timeout_s: float | None = None  # ArduPilot GUID_TIMEOUT; None: the autopilot model's default
 
     @property
     def n(self) -> int:
         return len(self.starts_ned)
+
+    def onboard_port(self, i: int) -> int:
+        """Vehicle ``i``'s onboard (companion) port: UDP base + i, or TCP base + 10*i as ArduPilot SITL."""
+        return self.base_port + (ARDUPILOT_INSTANCE_PORT_STEP * i if self.transport == "tcp" else i)
 
 
 class SimulatedVehicles:
@@ -106,12 +118,17 @@ class SimulatedVehicles:
         self.feed = CameraFeed(config.camera, config.host, config.depth_port, n)
         self.autopilots: list[SimAutopilot] = []
         for i in range(n):
-            onboard = self._link("onboard", config.base_port + i, i + 1, link_id=1)
+            if config.transport == "tcp":
+                onboard = MavlinkTcpServer("onboard", (config.host, config.onboard_port(i)), i + 1,
+                                           MAV_COMP_ID_AUTOPILOT1, config.signing_key, link_id=1)
+            else:
+                onboard = self._link("onboard", config.base_port + i, i + 1, link_id=1)
             gcs = self._link("gcs", config.gcs_port, i + 1, link_id=2) if config.gcs_port else None
-            self.autopilots.append(SimAutopilot(i, config.autopilot, onboard, gcs, log, airborne=config.airborne,
-                                                odometry_child_frame=config.odometry_child_frame,
-                                                camera=self.feed.sender))
-        self._fds = {link.fileno(): (ap, link) for ap in self.autopilots for link in ap.links}
+            ap = SimAutopilot(i, config.autopilot, onboard, gcs, log, airborne=config.airborne,
+                              odometry_child_frame=config.odometry_child_frame, camera=self.feed.sender)
+            if config.guided_timeout_s is not None:
+                ap.guided_timeout_s = config.guided_timeout_s
+            self.autopilots.append(ap)
         self.collided = np.zeros(n, dtype=bool)
         self.skipped_frames = 0
         self._next_physics_s: float | None = None
@@ -128,7 +145,13 @@ class SimulatedVehicles:
 
     # ------------------------------------------------------------------ the real-time loop's calls
     def fds(self) -> dict[int, tuple[SimAutopilot, MavlinkUdpEndpoint]]:
-        return self._fds  # the links never change
+        """Every socket to wait on (a TCP link adds its client's while one is connected)."""
+        out = {}
+        for ap in self.autopilots:
+            for link in ap.links:
+                for fd in (link.fds() if hasattr(link, "fds") else [link.fileno()]):
+                    out[fd] = (ap, link)
+        return out
 
     def receive(self, link: tuple[SimAutopilot, MavlinkUdpEndpoint], now_s: float) -> None:
         ap, endpoint = link
@@ -251,8 +274,15 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--autopilot", choices=[k.value for k in AutopilotKind], default="px4",
                         help="behave like PX4 (default) or ArduCopter")
     parser.add_argument("--host", type=host, default="127.0.0.1", help="address of the companions and ground station (default 127.0.0.1)")
-    parser.add_argument("--base-port", type=udp_port_nonzero, default=PX4_ONBOARD_BASE_PORT,
-                        help=f"companion i listens on base-port + i (default {PX4_ONBOARD_BASE_PORT})")
+    parser.add_argument("--transport", choices=("udp", "tcp"), default="udp",
+                        help="udp (default): send to the companion's UDP port as PX4 SITL; tcp: listen on TCP "
+                             "as ArduPilot SITL's SERIAL1 (companion: --connect tcp:HOST:PORT)")
+    parser.add_argument("--base-port", type=udp_port_nonzero, default=None,
+                        help=f"udp: companion i listens on base-port + i (default {PX4_ONBOARD_BASE_PORT}); tcp: "
+                             f"vehicle i listens on base-port + 10*i (default {ARDUPILOT_SERIAL1_BASE_PORT})")
+    parser.add_argument("--guid-timeout", type=positive_float, default=None, metavar="S",
+                        help="ArduPilot flavour: GUID_TIMEOUT, stop in GUIDED after S seconds without a setpoint "
+                             "(default 3, ArduPilot's)")
     parser.add_argument("--depth-port", type=udp_port_nonzero, default=DEPTH_BASE_PORT,
                         help=f"depth frames of vehicle i go to depth-port + i (default {DEPTH_BASE_PORT})")
     parser.add_argument("--gcs-port", type=udp_port, default=GCS_PORT,
@@ -276,7 +306,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--trace", type=output_file, metavar="PATH",
                         help="write every vehicle's true position, airborne and crashed flags as JSON lines at 10 Hz")
     args = parser.parse_args(argv)
-    check_port_block(parser, "--base-port", args.base_port, args.n)
+    if args.base_port is None:
+        args.base_port = ARDUPILOT_SERIAL1_BASE_PORT if args.transport == "tcp" else PX4_ONBOARD_BASE_PORT
+    if args.transport == "tcp":
+        last = args.base_port + ARDUPILOT_INSTANCE_PORT_STEP * (args.n - 1)
+        if last > 65535:
+            parser.error(f"--base-port {args.base_port}: the TCP ports of {args.n} vehicles (every 10th) would pass 65535")
+    else:
+        check_port_block(parser, "--base-port", args.base_port, args.n)
+    if args.guid_timeout is not None and args.autopilot != "ardupilot":
+        parser.error("--guid-timeout is an ArduPilot parameter (use it with --autopilot ardupilot)")
     check_port_block(parser, "--depth-port", args.depth_port, args.n)
     if args.starts is not None:
         try:
@@ -315,7 +354,7 @@ def vehicles_config(args: argparse.Namespace) -> VehiclesConfig:
         starts_ned=starts, yaws_rad=yaws, autopilot=AutopilotKind(args.autopilot), host=args.host,
         base_port=args.base_port, depth_port=args.depth_port, gcs_port=args.gcs_port, airborne=args.airborne,
         dynamics=args.dynamics, camera=camera_config(args), signing_key=key,
-        odometry_child_frame=args.odometry_child_frame)
+        odometry_child_frame=args.odometry_child_frame, transport=args.transport, guided_timeout_s=args.guid_timeout)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -325,9 +364,11 @@ def main(argv: list[str] | None = None) -> int:
     trace = open(args.trace, "w", buffering=1) if args.trace else None  # noqa: SIM115
     vehicles = SimulatedVehicles(config, log, trace)
     ready = dict(n=config.n, autopilot=args.autopilot, dynamics=config.dynamics,
-                 onboard_ports=[config.base_port + i for i in range(config.n)],
+                 onboard_ports=[config.onboard_port(i) for i in range(config.n)], transport=config.transport,
                  depth_ports=[config.depth_port + i for i in range(config.n)], gcs_port=config.gcs_port or None,
                  camera=config.camera.describe(), signing=config.signing_key is not None)
+    connect = (f"tcp:{config.host}:{config.base_port}+10i" if config.transport == "tcp"
+               else f"udp:{config.base_port}+i")
     banner = (f"sitl.vehicle: {config.n} {args.autopilot} vehicle(s) up; companion i: --connect "
-              f"udp:{config.base_port}+i --camera sitl:{config.depth_port}+i")
+              f"{connect} --camera sitl:{config.depth_port}+i")
     return serve(vehicles, args.duration, config.camera.hz, ready, banner)

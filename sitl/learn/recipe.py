@@ -1,0 +1,257 @@
+"""A training recipe: curriculum stages, selection and export in one resumable command.
+
+A preset with ``"stages"`` (:data:`sitl.learn.config.PRESETS`) is a recipe: ``python -m
+sitl.train --preset NAME`` runs its stages one after the other in one run directory, each
+stage a complete training run of its own (``RUN/stage<i>-<name>/``, with its config,
+TensorBoard logs, validated snapshots and checkpoint) that starts from the networks the
+previous stage selected (``init_from``). After the last stage the best validated snapshots
+of that stage are flown again on more validation episodes (:func:`sitl.learn.rescore.rescore_snapshot`),
+the winner gets the test-seed evaluation and is exported to ``RUN/policy.pt`` with the whole
+recipe in its provenance, including the wall time from the first update to the export.
+
+Nothing is hand-edited between stages: the choices a person used to make (which snapshot
+to continue from, rescoring, the final evaluation) are rules written here. ``RUN/recipe.json``
+records each finished stage; ``python -m sitl.train --resume RUN`` continues an interrupted
+recipe from the stage it was in (that stage from its last checkpoint).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from sitl.learn.agent import AgentConfig
+from sitl.learn.config import RecipeStage, TrainConfig
+from sitl.learn.rescore import rescore_snapshot, snapshot_actor
+from sitl.learn.trainer import make_trainer, select_snapshot
+
+RECIPE_FILE = "recipe.json"
+
+
+def scaled_stages(stages: tuple[RecipeStage, ...], scale: float) -> tuple[RecipeStage, ...]:
+    """The stages with their updates, validation intervals and validation episodes times ``scale`` (>= 1 each)."""
+    if scale == 1.0:
+        return tuple(stages)
+    keys = ("total_updates", "eval_every_updates", "eval_episodes")
+    return tuple(replace(st, train={**st.train, **{k: scaled(st.train[k], scale) for k in keys if k in st.train}})
+                 for st in stages)
+
+
+def scaled(count: int, scale: float) -> int:
+    """``count * scale`` rounded, at least 1 (a quick trial still runs every step once)."""
+    return max(1, round(count * scale))
+
+
+def stage_dir(run_dir: Path, index: int, stage: RecipeStage) -> Path:
+    """Where stage ``index`` (0-based) of a recipe trains."""
+    return run_dir / f"stage{index + 1}-{stage.name}"
+
+
+def stage_configs(cfg: TrainConfig, agent_cfg: AgentConfig, stage: RecipeStage, run_dir: Path,
+                  init_from: str, explicit: frozenset[str] = frozenset()) -> tuple[TrainConfig, AgentConfig]:
+    """The configs of one stage: the recipe's, the stage's overrides, then the rules every stage follows.
+
+    Fields named in ``explicit`` (given on the command line) keep the recipe's value: an explicit
+    flag wins over the preset, stages included. Every stage validates and keeps its best
+    snapshot (``select_best``); none runs a test-seed evaluation of its own (the recipe runs one
+    at the very end).
+    """
+    train = {k: v for k, v in stage.train.items() if k not in explicit}
+    agent = {k: v for k, v in stage.agent.items() if k not in explicit}
+    return (replace(cfg, **train, run_dir=str(run_dir), init_from=init_from, select_best=True, final_eval_episodes=0),
+            replace(agent_cfg, **agent))
+
+
+def _write_config(run_dir: Path, cfg: TrainConfig, agent_cfg: AgentConfig) -> None:
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "config.json").write_text(json.dumps(
+        {"train": dataclasses.asdict(cfg), "agent": dataclasses.asdict(agent_cfg)}, indent=2))
+
+
+def _load_state(run_dir: Path) -> dict:
+    path = run_dir / RECIPE_FILE
+    return json.loads(path.read_text()) if path.is_file() else {"stages": [], "wall_s": 0.0}
+
+
+def _save_state(run_dir: Path, state: dict) -> None:
+    tmp = run_dir / (RECIPE_FILE + ".tmp")
+    tmp.write_text(json.dumps(state, indent=2))
+    tmp.replace(run_dir / RECIPE_FILE)
+
+
+def _validation_rows(sdir: Path) -> list[dict]:
+    return json.loads((sdir / "snapshots" / "validation.json").read_text())
+
+
+def _fmt_minutes(seconds: float) -> str:
+    return f"{seconds / 60:.1f} min"
+
+
+class Recipe:
+    """Runs (or resumes) the stages of ``cfg.preset`` in ``run_dir``; :meth:`run` returns the exported policy."""
+
+    def __init__(self, cfg: TrainConfig, agent_cfg: AgentConfig, stages: tuple[RecipeStage, ...], run_dir: Path,
+                 rescore_top: int, rescore_episodes: int, explicit: frozenset[str] = frozenset(),
+                 scale: float = 1.0, log=None) -> None:
+        """``cfg``/``agent_cfg``: the recipe's configs (preset and explicit flags, ``explicit`` naming the
+        flags given); ``scale``: multiplies the stages' updates, validation intervals and every
+        evaluation's episodes (a quick trial of the whole recipe); ``final_eval_episodes`` comes from ``cfg``."""
+        self.cfg, self.agent_cfg, self.run_dir = cfg, agent_cfg, run_dir
+        self.stages = scaled_stages(stages, scale)
+        self.explicit, self.scale = frozenset(explicit), scale
+        self.rescore_top, self.rescore_episodes = rescore_top, scaled(rescore_episodes, scale)
+        self.final_eval_episodes = scaled(cfg.final_eval_episodes, scale) if cfg.final_eval_episodes else 0
+        self.log = log or (lambda message: print(message, file=sys.stderr, flush=True))
+        self.state = _load_state(run_dir)
+        self.state.update(scale=scale, explicit=sorted(self.explicit))
+
+    # ------------------------------------------------------------------ helpers
+    def _elapsed(self) -> float:
+        return self.state["wall_s"] + (time.perf_counter() - self._t0)
+
+    def _checkpoint_state(self) -> None:
+        self.state["wall_s"] = self._elapsed()
+        self._t0 = time.perf_counter()
+        _save_state(self.run_dir, self.state)
+
+    def _eta(self, index: int) -> str:
+        """Time left, extrapolated from the updates per second of the stages done so far."""
+        done = self.state["stages"]
+        if not done:
+            return "time left: unknown until the first stage ends"
+        rate = sum(s["updates"] for s in done) / max(sum(s["wall_s"] for s in done), 1e-9)
+        todo = sum(self.stages[i].train.get("total_updates", self.cfg.total_updates)
+                   for i in range(index, len(self.stages)))
+        return f"time left: ~{_fmt_minutes(todo / max(rate, 1e-9))} at {rate:.2f} updates/s so far"
+
+    # ------------------------------------------------------------------ stages
+    def _run_stage(self, index: int, init_from: str) -> dict:
+        stage = self.stages[index]
+        sdir = stage_dir(self.run_dir, index, stage)
+        cfg, agent_cfg = stage_configs(self.cfg, self.agent_cfg, stage, sdir, init_from, self.explicit)
+        resume = (sdir / "checkpoint.pt").is_file()
+        if resume:  # the stage's own saved config wins: it is what its checkpoint was trained with
+            saved = json.loads((sdir / "config.json").read_text())
+            cfg, agent_cfg = TrainConfig(**saved["train"]), AgentConfig(**saved["agent"])
+        else:
+            if sdir.exists():
+                shutil.rmtree(sdir)  # started but never checkpointed: nothing worth keeping
+            _write_config(sdir, cfg, agent_cfg)
+        self.log(f"=== stage {index + 1}/{len(self.stages)} '{stage.name}': {stage.description} "
+                 f"({cfg.total_updates} updates{', resumed' if resume else ''}; {self._eta(index)})")
+        started = time.perf_counter()
+        trainer = make_trainer(cfg, agent_cfg, sdir, resume=resume)
+        trainer.run()
+        best = select_snapshot(_validation_rows(sdir))
+        record = {"name": stage.name, "description": stage.description, "run_dir": sdir.name,
+                  "init_from": init_from, "overrides": {"train": stage.train, "agent": stage.agent},
+                  "updates": trainer.counters["updates"], "wall_s": round(time.perf_counter() - started, 1),
+                  "selected_updates": best["updates"], "selected_score": best["score"],
+                  "snapshot": str(sdir / "snapshots" / f"agent_{best['updates']}.pt")}
+        self.log(f"stage {index + 1} done in {_fmt_minutes(record['wall_s'])}: selected the snapshot at "
+                 f"{best['updates']} updates (validation success {best['score']:.3f})")
+        return record
+
+    def _rescore_last(self) -> None:
+        """Fly the last stage's best snapshots again on ``rescore_episodes`` validation episodes per scene."""
+        index = len(self.stages) - 1
+        sdir = stage_dir(self.run_dir, index, self.stages[index])
+        saved = json.loads((sdir / "config.json").read_text())
+        cfg, agent_cfg = TrainConfig(**saved["train"]), AgentConfig(**saved["agent"])
+        rows = _validation_rows(sdir)
+        candidates = sorted(rows, key=lambda r: (r["score"], r["updates"]), reverse=True)[:self.rescore_top]
+        scenes = self.stages[index].rescore_scenes
+        for row in candidates:
+            if "rescored" in row:
+                continue  # done before an interruption
+            act = snapshot_actor(cfg, agent_cfg, sdir / "snapshots" / f"agent_{row['updates']}.pt")
+            row["rescored"] = rescore_snapshot(cfg, act, list(scenes), self.rescore_episodes)
+            cells = ", ".join(f"{name} {r['success_rate']:.3f}" for name, r in row["rescored"]["scenes"].items())
+            self.log(f"rescored {row['updates']} updates on {self.rescore_episodes} episodes per scene: {cells} "
+                     f"-> score {row['rescored']['score']:.3f} (training-time {row['score']:.3f})")
+            (sdir / "snapshots" / "validation.json").write_text(json.dumps(rows, indent=1))
+
+    def _export(self) -> Path:
+        """Test-seed evaluation of the selected snapshot and export, with the recipe in the provenance."""
+        index = len(self.stages) - 1
+        sdir = stage_dir(self.run_dir, index, self.stages[index])
+        saved = json.loads((sdir / "config.json").read_text())
+        cfg = replace(TrainConfig(**saved["train"]), final_eval_episodes=self.final_eval_episodes)
+        trainer = make_trainer(cfg, AgentConfig(**saved["agent"]), sdir, resume=True)
+        self.state["wall_s"] = self._elapsed()  # the export's own evaluation is added below
+        recipe = {"preset": self.cfg.preset, "scale": self.scale, "stages": self.state["stages"],
+                  "rescore": {"top": self.rescore_top, "episodes": self.rescore_episodes},
+                  "wall_time_s_before_final_evaluation": round(self.state["wall_s"], 1)}
+        path = trainer.finish(recipe=recipe)
+        for name in ("policy.pt", "final_eval.json"):  # the recipe draws its own learning curve
+            if (sdir / name).is_file():
+                shutil.copyfile(sdir / name, self.run_dir / name)
+        return self.run_dir / path.name
+
+    def run(self) -> Path:
+        """Every stage not yet done, the rescoring, the final evaluation and the export."""
+        self._t0 = time.perf_counter()
+        self.state.setdefault("preset", self.cfg.preset)
+        _save_state(self.run_dir, self.state)  # a resume before the first stage ends knows the scale too
+        self.log(f"recipe '{self.cfg.preset}': {len(self.stages)} stages, "
+                 f"{sum(s.train.get('total_updates', self.cfg.total_updates) for s in self.stages)} updates in all; "
+                 f"run directory {self.run_dir}")
+        init_from = self.cfg.init_from
+        for index in range(len(self.stages)):
+            if index < len(self.state["stages"]):
+                init_from = self.state["stages"][index]["snapshot"]
+                continue
+            record = self._run_stage(index, init_from)
+            self.state["stages"].append(record)
+            self._checkpoint_state()
+            init_from = record["snapshot"]
+        if self.rescore_top > 0 and self.rescore_episodes > 0:
+            self._rescore_last()
+        path = self._export()
+        self.state["wall_s"] = self._elapsed()
+        self.state["done"] = True
+        _save_state(self.run_dir, self.state)
+        plot_recipe_curve(self.run_dir, self.stages, self.run_dir / "learning_curve.png")
+        self.log(f"recipe done in {_fmt_minutes(self.state['wall_s'])}; wrote {path}")
+        return path
+
+
+def plot_recipe_curve(run_dir: Path, stages: tuple[RecipeStage, ...], path: Path) -> None:
+    """The learning curve of all stages end to end against updates, stage boundaries marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 4))
+    offset = 0
+    for index, stage in enumerate(stages):
+        sdir = stage_dir(run_dir, index, stage)
+        index_path = sdir / "snapshots" / "validation.json"
+        if not index_path.is_file():
+            break
+        rows = sorted(json.loads(index_path.read_text()), key=lambda r: r["updates"])
+        x = offset + np.array([r["updates"] for r in rows])
+        ax.plot(x, [r["score"] for r in rows], "o-", color=f"C{index % 10}", label=f"{index + 1}: {stage.name}")
+        rescored = [(offset + r["updates"], r["rescored"]["score"]) for r in rows if "rescored" in r]
+        if rescored:
+            ax.plot(*zip(*rescored), "k*", ms=10, label="rescored")
+        if index:
+            ax.axvline(offset, color="grey", ls="--", lw=1)
+        offset = int(x.max()) if len(x) else offset
+    ax.set_xlabel("gradient updates (all stages)")
+    ax.set_ylabel("validation success")
+    ax.set_ylim(0, 1.02)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="lower right")
+    ax.set_title(f"recipe {run_dir.name}: validation success per stage")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

@@ -1,0 +1,88 @@
+"""Training recipes (sitl.learn.recipe): stages chained by their selected snapshots, resumable, one export."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from companion.policy import load_policy
+from sitl.learn.agent import AgentConfig
+from sitl.learn.config import PRESETS, RecipeStage, resolve_configs
+from sitl.learn.recipe import RECIPE_FILE, Recipe, scaled_stages, stage_configs
+
+REPO = Path(__file__).resolve().parents[1]
+
+#: a recipe small enough for a test: two stages of a few updates on tiny worlds and networks
+TINY = {"num_worlds": 2, "num_uavs": 3, "image_size": 16, "init_steps": 48, "batch_size": 16,
+        "replay_capacity": 2_000, "max_episode_steps": 30, "eval_episodes": 2, "final_eval_episodes": 3,
+        "checkpoint_every_s": 1e6}
+STAGES = (
+    RecipeStage("first", "random scene", {"scenario": "random", "total_updates": 12, "eval_every_updates": 6}),
+    RecipeStage("second", "mixed scenes at a lower learning rate",
+                {"scenario": "mixed", "total_updates": 8, "eval_every_updates": 4}, {"actor_lr": 3e-4}),
+)
+
+
+class Interrupt(Exception):
+    """Stands in for the end of a session in the middle of a recipe."""
+
+
+def tiny_configs(run_dir: Path):
+    return resolve_configs({**TINY, "run_dir": str(run_dir)}, {"hidden_dim": 32, "latent_dim": 8, "num_filters": 8})
+
+
+def test_a_recipe_chains_its_stages_resumes_after_an_interruption_and_exports_once(tmp_path):
+    cfg, agent_cfg = tiny_configs(tmp_path)
+    messages: list[str] = []
+
+    def stop_at_stage_two(message: str) -> None:
+        messages.append(message)
+        if message.startswith("=== stage 2/2"):
+            raise Interrupt
+
+    with pytest.raises(Interrupt):
+        Recipe(cfg, agent_cfg, STAGES, tmp_path, rescore_top=2, rescore_episodes=2, log=stop_at_stage_two).run()
+    state = json.loads((tmp_path / RECIPE_FILE).read_text())
+    assert [s["name"] for s in state["stages"]] == ["first"] and not (tmp_path / "policy.pt").exists()
+    first = state["stages"][0]
+    assert first["updates"] == 12 and Path(first["snapshot"]).is_file()
+
+    messages.clear()
+    path = Recipe(cfg, agent_cfg, STAGES, tmp_path, rescore_top=2, rescore_episodes=2, log=messages.append).run()
+    assert not any(m.startswith("=== stage 1/") for m in messages), "a finished stage must not run again"
+    state = json.loads((tmp_path / RECIPE_FILE).read_text())
+    assert state["done"] and [s["name"] for s in state["stages"]] == ["first", "second"]
+    second = json.loads((tmp_path / "stage2-second" / "config.json").read_text())
+    # the second stage starts from the first stage's selected snapshot, with its own overrides
+    assert second["train"]["init_from"] == first["snapshot"] and second["train"]["scenario"] == "mixed"
+    assert second["agent"]["actor_lr"] == 3e-4 and second["train"]["final_eval_episodes"] == 0
+    rows = json.loads((tmp_path / "stage2-second" / "snapshots" / "validation.json").read_text())
+    assert sum("rescored" in row for row in rows) == 2  # the two best were flown again
+
+    provenance = load_policy(path).metadata["provenance"]
+    recipe = provenance["recipe"]
+    assert [s["name"] for s in recipe["stages"]] == ["first", "second"]
+    assert recipe["wall_time_s"] >= sum(s["wall_s"] for s in recipe["stages"]) > 0
+    assert provenance["selected_snapshot"]["rescored"]["episodes"] == 2
+    assert provenance["evaluation"]["episodes"] == 3  # the test-seed evaluation ran once, at the end
+    assert (tmp_path / "learning_curve.png").stat().st_size > 0
+
+
+def test_explicit_flags_win_over_stage_overrides_and_scale_shrinks_a_recipe(tmp_path):
+    cfg, agent_cfg = tiny_configs(tmp_path)
+    train, agent = stage_configs(cfg, agent_cfg, STAGES[1], tmp_path, "", explicit=frozenset({"actor_lr"}))
+    assert train.scenario == "mixed" and agent.actor_lr == AgentConfig().actor_lr
+    small = scaled_stages(PRESETS["bundle-paper"]["stages"], 0.01)
+    assert [s.train["total_updates"] for s in small] == [75, 50, 50, 100]
+    assert all(s.train["eval_episodes"] >= 1 for s in small if "eval_episodes" in s.train)
+
+
+def test_train_help_lists_a_recipes_stages():
+    out = subprocess.run([sys.executable, "-m", "sitl.train", "--preset", "bundle-paper", "--help"], cwd=REPO,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0
+    assert "recipe of 4 stages" in out.stdout and "stage 4 'mixed15'" in out.stdout
