@@ -40,6 +40,7 @@ from pathlib import Path
 from companion.spec import DEFAULT_TASK_SPEC
 from sitl.cli_args import (
     ArgumentParser,
+    camera_preset,
     MAX_THREADS,
     MAX_VEHICLES,
     float_range,
@@ -78,8 +79,11 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
                         help=f"evaluation seed; the simulator uses {EVAL_SEED_OFFSET} + SEED, disjoint from training")
     parser.add_argument("--dynamics", choices=DYNAMICS_NAMES, default=DYNAMICS_NAMES[0],
                         help="UAV dynamics (default kinematic)")
-    parser.add_argument("--camera-noise", action=argparse.BooleanOptionalAction, default=False,
-                        help="stereo depth noise and dropouts (default off: perfect depth)")
+    parser.add_argument("--camera", type=camera_preset, default=None,
+                        help="camera preset the UAVs carry: paper or realsense_d435 (default: the policy's own camera, "
+                             "paper for the references); a policy must fit in it (its FOV cut from the camera's)")
+    parser.add_argument("--camera-noise", action=argparse.BooleanOptionalAction, default=None,
+                        help="stereo depth noise with holes (default: on with --camera realsense_d435, else off)")
     parser.add_argument("--max-steps", type=int_range(1, MAX_EPISODE_STEPS), default=DEFAULT_TASK_SPEC.max_episode_steps,
                         help=f"episode time limit in control steps (default {DEFAULT_TASK_SPEC.max_episode_steps} = "
                              f"{DEFAULT_TASK_SPEC.max_episode_steps / 10:g} s at 10 Hz)")
@@ -118,6 +122,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     mav.add_argument("--depth-port", type=_port, default=14640, help="vehicle i's depth frames to UDP depth-port + i")
     mav.add_argument("--gcs-port", type=_port, default=14550, help="ground-station port of every vehicle (this process)")
     args = parser.parse_args(argv)
+    if args.camera_noise is None:  # a real sensor's preset brings its noise
+        args.camera_noise = args.camera not in (None, "paper") and not args.mavlink
     if args.episodes is None:
         args.episodes = 10 if args.mavlink else 100
     if args.mavlink:
@@ -188,7 +194,7 @@ def run_single(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     settings = EvalSettings(scenario=args.scenario_config, num_uavs=args.n, episodes=args.episodes, seed=args.seed,
                             dynamics=args.dynamics, camera_noise=args.camera_noise, max_episode_steps=args.max_steps,
-                            batch_worlds=args.batch)
+                            batch_worlds=args.batch, camera=args.camera)
     methods = [method]
     if args.reference and not (method.kind == "baseline" and method.label == "straight"):
         methods.append(resolve_method("straight"))

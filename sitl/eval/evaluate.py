@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 from companion.spec import DEFAULT_TASK_SPEC
 from sitl.eval.methods import EvaluationError, Method
 from sitl.eval.report import collision_rate
+from companion.spec import CAMERA_PRESETS
+from sitl.cli_args import fits_camera
 from sitl.sim.camera import StereoNoise
 from sitl.sim.config import DENSITIES, ScenarioConfig, SimConfig
 from sitl.sim.episodes import ScenarioError, StepObserver, run_episodes
@@ -33,6 +35,7 @@ class EvalSettings:
     dynamics: str = "kinematic"
     camera_noise: bool = False
     noise_model: StereoNoise = field(default_factory=StereoNoise)  # the camera's errors when camera_noise is on
+    camera: str | None = None  # camera preset (companion.spec.CAMERA_PRESETS); None: the policy's own, or paper
     max_episode_steps: int = DEFAULT_TASK_SPEC.max_episode_steps
     batch_worlds: int = 100  # episodes flown at once (parallel worlds)
     record_paths: bool = True
@@ -65,13 +68,24 @@ def density_label(density: float) -> str:
 def sim_config_for(method: Method, settings: EvalSettings, num_worlds: int) -> SimConfig:
     """The simulator configuration for ``method``: its camera and control period when it is a policy."""
     extra = {}
+    sensor = CAMERA_PRESETS[settings.camera] if settings.camera else None
     if method.camera is not None:
+        # The simulated camera is the policy's: what the companion cuts from the sensor's wider image.
+        problem = fits_camera(method.camera, sensor) if sensor is not None else None
+        if problem:
+            raise EvaluationError(f"{method.label}: {problem}")
         extra["camera"] = method.camera
+    elif sensor is not None:
+        extra["camera"] = sensor
+    min_range_m = extra["camera"].min_range_m if "camera" in extra else 0.0
     if method.control_period_s is not None:
         extra["control_period_s"] = method.control_period_s
     return SimConfig(num_uavs=settings.num_uavs, num_worlds=num_worlds, scenario=settings.scenario,
                      dynamics=settings.dynamics, max_episode_steps=settings.max_episode_steps,
-                     camera_noise=settings.noise_model if settings.camera_noise else None,
+                     # the noise model's "too near" cut is the simulated camera's (0 for the paper camera)
+                     camera_noise=dataclasses.replace(settings.noise_model, min_range_m=max(
+                         min_range_m, sensor.min_range_m if sensor else 0.0))
+                     if settings.camera_noise else None,
                      record_paths=settings.record_paths, **extra)
 
 

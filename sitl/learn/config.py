@@ -12,9 +12,10 @@ from dataclasses import dataclass, field
 
 import torch
 
-from companion.spec import DEFAULT_TASK_SPEC, CameraSpec
+from companion.spec import CAMERA_PRESETS, DEFAULT_TASK_SPEC, CameraSpec
 from sitl.cli_args import MAX_THREADS
 from sitl.learn.agent import METHODS, AgentConfig
+from sitl.sim.camera import StereoNoise
 from sitl.sim.config import (CIRCLE_RADIUS_M, GEOMETRIES, OBSTACLE_SCENE_DENSITY, TRAINING_SCENARIOS,
                              RewardConfig, SimConfig, density_from_name, scenario_for)
 from sitl.sim.dynamics import KinematicRandomization
@@ -61,7 +62,13 @@ class TrainConfig:
                                      "distance to the goal that counts as arrival (paper: 0.5 m)")
     num_uavs: int = _param(8, "UAVs per world")
     num_worlds: int = _param(4, "worlds stepped together (vectorised rollouts)")
-    image_size: int = _param(32, "depth image side in pixels (square, 90 deg FOV)")
+    image_size: int = _param(32, "depth image side in pixels (the paper camera: square, 90 deg FOV)")
+    camera: str = _param("paper", f"camera preset: {', '.join(CAMERA_PRESETS)} (realsense_d435: 87x58 deg, 48x32 px, "
+                                  "0.2-10 m; docs/simulator.md)")
+    camera_noise: bool = _param(False, "train with the stereo noise model (z^2 error, holes reported as 0)")
+    mount_pitch_jitter_deg: float = _param(0.0, "camera mount pitch drawn per episode within +-deg of the mount")
+    avoid_counts_ground: bool = _param(False, "eq. 4's d_min counts the ground, as in the paper (default: UAVs and "
+                                              "obstacles only; docs/training.md)")
     max_episode_steps: int = _param(200, "episode time limit in 0.1 s steps of training and of the trainer's own "
                                          "evaluations (validation, rescoring and policy.json's final evaluation); "
                                          "swarm_test flies its own --max-steps (default "
@@ -115,6 +122,10 @@ class TrainConfig:
             raise ValueError(f"arrival_radius_m must be in (0, 100], got {self.arrival_radius_m}")
         if not 0.0 < self.circle_radius_m <= 10_000.0:
             raise ValueError(f"circle_radius_m must be in (0, 10000], got {self.circle_radius_m}")
+        if self.camera not in CAMERA_PRESETS:
+            raise ValueError(f"unknown camera {self.camera!r}; choose one of {', '.join(CAMERA_PRESETS)}")
+        if not 0.0 <= self.mount_pitch_jitter_deg <= 30.0:
+            raise ValueError(f"mount_pitch_jitter_deg must be in [0, 30], got {self.mount_pitch_jitter_deg}")
         if not 0.0 <= self.yaw_jitter_deg <= 180.0:
             raise ValueError(f"yaw_jitter_deg must be in [0, 180], got {self.yaw_jitter_deg}")
         if not 0.0 <= self.updates_per_env_step <= 10_000.0:
@@ -161,7 +172,7 @@ PRESETS: dict[str, dict] = {
               "agent": {"init_temperature": 0.01, "n_step": 5}},
     "paper": {"train": {"num_worlds": 1, "image_size": 64, "replay_capacity": 20_000, "max_episodes": 200,
                         "total_updates": 0, "updates_per_episode": 400, "updates_per_env_step": 0.0,
-                        "init_steps": 1_000},
+                        "init_steps": 1_000, "avoid_counts_ground": True},
               "agent": {}},
     # The bundled models/policy.pt's curriculum (models/README.md) as one recipe: the paper's
     # medium random scene, then mixes of random and circle episodes at falling learning rates;
@@ -216,12 +227,23 @@ def make_sim_config(cfg: TrainConfig, num_worlds: int, record_paths: bool = Fals
     if name == "obstacles":
         values["density"] = OBSTACLE_SCENE_DENSITY  # the obstacle scene's own spacing, as swarm_test flown flies it
     scenario = scenario_for(cfg.geometry, name, **values)
-    camera = CameraSpec(width=cfg.image_size, height=cfg.image_size)
-    randomization = KinematicRandomization() if cfg.randomize_dynamics and scenario_name is None else None
+    camera = training_camera(cfg)
+    training = scenario_name is None  # randomization trains robustness; evaluations fly the nominal vehicle
+    randomization = KinematicRandomization() if cfg.randomize_dynamics and training else None
     return SimConfig(num_uavs=cfg.num_uavs, num_worlds=num_worlds, scenario=scenario, camera=camera,
                      dynamics_randomization=randomization,
+                     camera_noise=StereoNoise(min_range_m=camera.min_range_m) if cfg.camera_noise else None,
+                     mount_pitch_jitter_deg=cfg.mount_pitch_jitter_deg if training else 0.0,
                      max_episode_steps=cfg.max_episode_steps, record_paths=record_paths,
-                     reward=RewardConfig(arrival_radius_m=cfg.arrival_radius_m))
+                     reward=RewardConfig(arrival_radius_m=cfg.arrival_radius_m,
+                                         avoid_counts_ground=cfg.avoid_counts_ground))
+
+
+def training_camera(cfg: TrainConfig) -> CameraSpec:
+    """The camera a run trains with: its preset (the paper camera at ``image_size`` pixels a side)."""
+    if cfg.camera == "paper":
+        return CameraSpec(width=cfg.image_size, height=cfg.image_size)
+    return CAMERA_PRESETS[cfg.camera]
 
 
 def evaluation_scenarios(cfg: TrainConfig) -> tuple[str, ...]:

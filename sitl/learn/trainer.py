@@ -524,6 +524,9 @@ class Trainer:
             "episodes": k["episodes"] + before.get("episodes", 0),
             "wall_time_s": round(k["wall_s"] + before.get("wall_s", 0.0), 1),
             "seed": cfg.seed, "device": cfg.device, "threads": cfg.threads,
+            # The camera conditions it was trained in (policy.json's depth has the geometry).
+            "camera": cfg.camera, "camera_noise": cfg.camera_noise,
+            "mount_pitch_jitter_deg": cfg.mount_pitch_jitter_deg, "avoid_counts_ground": cfg.avoid_counts_ground,
         }
         if selected is not None:
             provenance["selected_snapshot"] = selected  # trained for wall_time_s; these networks are from here

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.observation import DepthFrameStack, build_state
+from companion.observation import DepthFrameStack, build_state, clean_depth
 from companion.spec import DEFAULT_ACTION_SPEC, ActionSpec
 from sitl.sim.camera import DepthCamera
 from sitl.sim.collision import (DISABLED_BOX, DISABLED_CYLINDER, ground_collisions, obstacle_collisions,
@@ -84,6 +84,9 @@ class SwarmEnv:
         k_boxes, k_cylinders = max_obstacles(config.num_uavs, config.scenario)
         self.boxes = np.concatenate([fixed_boxes, np.tile(DISABLED_BOX, (b, k_boxes, 1))], axis=1)
         self.cylinders = np.concatenate([fixed_cylinders, np.tile(DISABLED_CYLINDER, (b, k_cylinders, 1))], axis=1)
+        # Each camera's mount pitch (rad, positive up), drawn per episode (SimConfig.mount_pitch_jitter_deg).
+        self.mount_pitch_rad = np.full(self.num_agents, config.camera.mount_pitch_rad)
+        self.nearest_object_m = np.full(self.num_agents, config.camera.max_range_m)  # d_min without the ground
 
         m = self.num_agents
         self.goal_ned = np.zeros((m, 3))
@@ -138,6 +141,9 @@ class SwarmEnv:
             if self.config.dynamics_randomization is not None:
                 self.dynamics.randomize(rows, self.config.dynamics_randomization, self.rng)
             self._place_obstacles(b, sample.boxes, sample.cylinders)
+            if self.config.mount_pitch_jitter_deg > 0:
+                jitter = np.radians(self.config.mount_pitch_jitter_deg)
+                self.mount_pitch_rad[rows] = self.config.camera.mount_pitch_rad + self.rng.uniform(-jitter, jitter, n)
             self.start_ned[rows] = sample.start_ned
             self.goal_ned[rows] = sample.goal_ned
             self.acting[rows] = True
@@ -214,7 +220,8 @@ class SwarmEnv:
 
         depth = self._render()
         self.frames.push(depth)
-        reward = step_reward(prev_dist, dist, arrived, collided, nearest_depth_m(depth), cfg.reward)
+        d_min = nearest_depth_m(depth) if cfg.reward.avoid_counts_ground else self.nearest_object_m
+        reward = step_reward(prev_dist, dist, arrived, collided, d_min, cfg.reward)
         reward = np.where(acting, reward, 0.0).astype(np.float32)
         terminated = collided | arrived
         info = {"acting": acting, "outcome": self.outcome.copy(), "collided": collided, "arrived": arrived}
@@ -222,12 +229,18 @@ class SwarmEnv:
 
     # ------------------------------------------------------------------ internals
     def _render(self) -> np.ndarray:
+        """The policy's view of every camera now: render, sensor noise, then the companion's conversion.
+
+        Also updates :attr:`nearest_object_m` (the kernel's nearest non-ground surface per camera,
+        noise-free: the reward's d_min when the ground does not count).
+        """
         cfg = self.config
-        depth = self.camera.render(self.dynamics.pos_ned, self.dynamics.yaw_rad, self.uavs_per_world,
-                                   visible=self.present, boxes=self.boxes, cylinders=self.cylinders)
+        depth, self.nearest_object_m = self.camera.render_with_objects(
+            self.dynamics.pos_ned, self.dynamics.yaw_rad, self.uavs_per_world, visible=self.present,
+            boxes=self.boxes, cylinders=self.cylinders, pitch_rad=self.mount_pitch_rad)
         if cfg.camera_noise is not None:
-            depth = cfg.camera_noise.apply(depth, cfg.camera.max_range_m, self.rng)
-        return depth
+            depth = cfg.camera_noise.apply(depth, cfg.camera.max_range_m, self.rng)  # raw: invalid pixels read 0
+        return clean_depth(depth, cfg.camera.max_range_m)  # exactly what the companion feeds the policy
 
     def _place_obstacles(self, b: int, boxes: np.ndarray, cylinders: np.ndarray) -> None:
         """World b's scenario obstacles for the new episode (the fixed ones stay; unused rows disabled)."""
