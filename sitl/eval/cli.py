@@ -326,6 +326,7 @@ def parse_paper_args(argv: list[str] | None = None) -> argparse.Namespace:
         args.episodes = 100
     if args.table_episodes is None:
         args.table_episodes = max(500, args.episodes)
+    args.camera_noise = bool(args.camera_noise)  # the paper protocol: perfect depth unless asked for
     try:
         args.policy_paths = parse_policies(args.policies)
     except ValueError as err:

@@ -68,7 +68,8 @@ def stored_cell(cell: PaperCell, out: Path) -> dict | None:
         return None
     try:
         stored = json.loads(path.read_text())
-        if stored.get("key") == _cell_key(cell, resolve_method(cell.spec)):
+        # compared as stored: JSON turns the scenario's tuples (e.g. obstacle size ranges) into lists
+        if stored.get("key") == json.loads(json.dumps(_cell_key(cell, resolve_method(cell.spec)))):
             return stored["summary"]
     except (json.JSONDecodeError, KeyError):
         pass  # unreadable: compute it again
