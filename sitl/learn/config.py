@@ -164,12 +164,33 @@ PRESETS: dict[str, dict] = {
     # <= 0.6 per step and the entropy bonus drowned it) and 5-step returns (one-step targets
     # with tau 0.01 propagated the arrival reward over the ~40-step episodes too slowly).
     "fast": {"train": {}, "agent": {"init_temperature": 0.01, "n_step": 5}},
-    # The task as flown (issue 15): the fast recipe on the flown geometry, a third of the episodes
-    # circles and a fifth among obstacles, each UAV with its own response. Measured training
-    # results belong in docs/training.md once a run has been made (not yet).
-    "flown": {"train": {"scenario": "mixed", "geometry": "flown", "circle_fraction": 0.3, "obstacle_fraction": 0.2,
-                        "randomize_dynamics": True},
-              "agent": {"init_temperature": 0.01, "n_step": 5}},
+    # The task as flown (issue 15) as one recipe: the RealSense D435 camera with its noise and a
+    # +-5 deg mount pitch, starts and goals 1.5-15 m above the ground, randomized dynamics, the
+    # ground left out of eq. 4's d_min. Stage 1 learns to fly low among other UAVs and
+    # obstacles; stage 2 adds circles (2-15 m altitude, 8-20 m radius) at the same learning
+    # rate; stage 3 settles at 3e-4. Stage budgets are planned for <= 2 h on 2 cores
+    # (~20k updates at ~0.25 s each at 48x32) and not yet timed end to end: time them with
+    # `--recipe-scale 0.05` and benchmarks/train_speed.py before a full run.
+    "flown": {
+        "train": {"geometry": "flown", "camera": "realsense_d435", "camera_noise": True,
+                  "mount_pitch_jitter_deg": 5.0, "randomize_dynamics": True, "avoid_counts_ground": False,
+                  "eval_episodes": 40},
+        "agent": {"init_temperature": 0.01, "n_step": 5},
+        "recipe": {"rescore_top": 3, "rescore_episodes": 200},
+        "stages": (
+            RecipeStage("low-random", "random scenes at 1.5-15 m, a fifth of them among obstacles",
+                        {"scenario": "mixed", "circle_fraction": 0.0, "obstacle_fraction": 0.2,
+                         "total_updates": 8_000, "eval_every_updates": 2_000}),
+            RecipeStage("with-circles", "30 % circles, 20 % obstacles",
+                        {"scenario": "mixed", "circle_fraction": 0.3, "obstacle_fraction": 0.2,
+                         "total_updates": 6_000, "eval_every_updates": 1_500}),
+            RecipeStage("settle", "the same mix at learning rates 3e-4",
+                        {"scenario": "mixed", "circle_fraction": 0.3, "obstacle_fraction": 0.2,
+                         "total_updates": 6_000, "eval_every_updates": 1_000, "eval_episodes": 60},
+                        {"actor_lr": 3e-4, "critic_lr": 3e-4, "encoder_lr": 3e-4, "decoder_lr": 3e-4},
+                        rescore_scenes=(("random-medium", "random", 8, "medium"), ("circle-n8", "circle", 8, "medium"))),
+        ),
+    },
     "paper": {"train": {"num_worlds": 1, "image_size": 64, "replay_capacity": 20_000, "max_episodes": 200,
                         "total_updates": 0, "updates_per_episode": 400, "updates_per_env_step": 0.0,
                         "init_steps": 1_000, "avoid_counts_ground": True},
