@@ -223,10 +223,11 @@ def build_parser() -> argparse.ArgumentParser:
                         help="exit 0 once arrived (and landed with --land-on-arrival), non-zero on any failure")
     flight.add_argument("--timeout", type=_positive("--timeout"), metavar="S", help="exit 7 if not arrived within S seconds")
     flight.add_argument("--max-invalid-depth", type=_positive("--max-invalid-depth", 1.0),
-                        default=MAX_INVALID_DEPTH_FRACTION, metavar="FRACTION",
+                        default=None, metavar="FRACTION",
                         help="hold when more than this fraction of a depth frame's pixels are invalid (0, negative, "
-                             f"NaN): a covered, dazzled or dead camera (default {MAX_INVALID_DEPTH_FRACTION:g}; check "
-                             "your camera's open-sky fraction in a recording first; 1 turns the check off)")
+                             f"NaN): a covered, dazzled or dead camera (default {MAX_INVALID_DEPTH_FRACTION:g} for an "
+                             "ideal simulated camera; 1, off, for a real sensor's policy (min range > 0), whose open-sky "
+                             "frames are 100 % invalid: docs/companion.md; 1 turns the check off)")
     flight.add_argument("--no-camera-sync", action="store_true",
                         help="do not phase-lock the control ticks to depth frame arrivals")
     flight.add_argument("--obstacle-distance", action=argparse.BooleanOptionalAction, default=True,
@@ -328,17 +329,25 @@ def _fly(args: argparse.Namespace, log) -> int:
     blank_state = np.zeros((1, len(STATE_NAMES)), np.float32)
     for _ in range(20):  # let TorchScript's profiling executor settle before the first real step
         policy.act(blank_depth, blank_state)
-    log.event("model", f"model {args.model}: {policy.camera.width}x{policy.camera.height}x{policy.camera.frames} depth, "
-              f"{policy.camera.hfov_deg:g} deg, control period {policy.control_period_s:g} s",
+    cam = policy.camera
+    log.event("model", f"model {args.model}: {cam.width}x{cam.height}x{cam.frames} depth, "
+              f"{cam.hfov_deg:g} x {cam.vertical_fov_deg:.4g} deg pitched {cam.mount_pitch_deg:+g} deg, "
+              f"range {cam.min_range_m:g}-{cam.max_range_m:g} m, control period {policy.control_period_s:g} s",
               model=args.model, metadata={k: v for k, v in policy.metadata.items() if k != "provenance"},
               runtime="onnxruntime" if providers else "torchscript",
               providers=getattr(policy.module, "providers", None))  # what onnxruntime really uses
+    for note in policy.notes:  # how an older policy file was read
+        log.event("model_note", note)
 
     # 2. The camera.
     from companion.depth_sources import DepthSourceError, open_depth_source
 
     try:
-        depth = open_depth_source(args.camera, policy.camera, args.max_invalid_depth)
+        from companion.observation import default_max_invalid_fraction
+
+        max_invalid = (args.max_invalid_depth if args.max_invalid_depth is not None
+                       else default_max_invalid_fraction(policy.camera))
+        depth = open_depth_source(args.camera, policy.camera, max_invalid)
         depth.start()
     except DepthSourceError as err:
         return fail(ExitCode.CAMERA, f"cannot start the camera: {err}")

@@ -52,6 +52,38 @@ def check_not_blinded(depth_m: np.ndarray, max_invalid_fraction: float = MAX_INV
             f"limit {100.0 * max_invalid_fraction:.0f} %)")
 
 
+def clean_depth(depth_m: np.ndarray, max_range_m: float) -> np.ndarray:
+    """The policy's view of raw depth pixels [...]: THE conversion, in training and in flight.
+
+    Invalid pixels — 0 (:data:`companion.spec.INVALID_DEPTH_M`, the RealSense SDK's "no data":
+    no stereo match, beyond range, too near), negative or non-finite — read ``max_range_m``
+    ("nothing seen within range"), and valid ones farther than ``max_range_m`` are clipped to
+    it. The simulator passes every rendered (and noised) frame through this function; the
+    companion every camera frame, after min-pooling to the policy's grid (which ignores invalid
+    pixels the same way, :func:`min_pool_depth`).
+    """
+    depth_m = np.asarray(depth_m, dtype=np.float32)
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(depth_m) & (depth_m > 0)
+    return np.where(valid, np.minimum(depth_m, np.float32(max_range_m)), np.float32(max_range_m)).astype(np.float32)
+
+
+def default_max_invalid_fraction(camera: CameraSpec) -> float:
+    """The blinded-camera limit the companion uses unless ``--max-invalid-depth`` says otherwise.
+
+    An ideal camera (``min_range_m == 0``: the paper's, rendered by the simulator, where only
+    a dead or covered sensor reads 0) keeps :data:`companion.spec.MAX_INVALID_DEPTH_FRACTION`.
+    A real stereo sensor (``min_range_m > 0``) reports the sky, the ground beyond its range
+    and untextured patches as 0: measured with ``benchmarks/camera_model.py`` (D435 preset,
+    noise, straight flights), frames are 70 % invalid on average below 3 m, more than 90 %
+    invalid in 99 % of frames above 6 m, and 100 % invalid in ~40 % of them — exactly what a
+    covered lens reads. No fraction separates the two there, so for a real sensor the
+    default is 1.0: the check never trips in normal flight. docs/companion.md says when to
+    set it (missions that stay within the sensor's range of a surface, e.g. below ~2.5 m).
+    """
+    return 1.0 if camera.min_range_m > 0 else MAX_INVALID_DEPTH_FRACTION
+
+
 def build_state(
     pos_ned: np.ndarray,
     yaw_rad: np.ndarray,
@@ -129,8 +161,7 @@ def _block_edges(size: int, out_size: int) -> np.ndarray:
 def _min_pool_depth_numpy(depth_m: np.ndarray, out_height: int, out_width: int, max_range_m: float) -> np.ndarray:
     """:func:`min_pool_depth` in numpy, for any leading batch axes."""
     height, width = depth_m.shape[-2:]
-    valid = np.isfinite(depth_m) & (depth_m > 0)
-    cleaned = np.where(valid, np.minimum(depth_m, max_range_m), np.float32(max_range_m))
+    cleaned = clean_depth(depth_m, max_range_m)
     if height % out_height == 0 and width % out_width == 0:
         fy, fx = height // out_height, width // out_width
         blocks = cleaned.reshape(cleaned.shape[:-2] + (out_height, fy, out_width, fx))
@@ -165,24 +196,32 @@ def _min_pool_depth_opencv(cv2, depth_m: np.ndarray, out_height: int, out_width:
     return out.astype(np.float32)
 
 
-def crop_to_hfov(depth_m: np.ndarray, source_hfov_deg: float, target: CameraSpec) -> np.ndarray:
-    """Crop a wider camera's frame [..., H, W] to the policy's field of view and aspect.
+def crop_to_hfov(depth_m: np.ndarray, source_hfov_deg: float, target: CameraSpec,
+                 source_vfov_deg: float | None = None) -> np.ndarray:
+    """Crop a wider camera's frame [..., H, W] to the policy's field of view in both axes.
 
-    Keeps the centred region whose horizontal FOV is ``target.hfov_deg`` and whose aspect
-    ratio is the target's. Raises if the source is narrower than the target.
+    Keeps the centred region that spans ``target.hfov_deg`` horizontally and the target's
+    vertical field of view vertically (its pixels are min-pooled to the policy's grid
+    afterwards, so the kept region need not have the policy's aspect ratio). The source's
+    vertical field of view is ``source_vfov_deg``, or follows from its square pixels. Raises
+    :class:`DepthFrameError` (one line) if the source is narrower than the policy in either axis.
     """
     height, width = depth_m.shape[-2:]
-    src_tan = np.tan(np.radians(source_hfov_deg) / 2)
-    if target.tan_half_hfov > src_tan + 1e-9:
+    src_tan_h = float(np.tan(np.radians(source_hfov_deg) / 2))
+    src_tan_v = (src_tan_h * height / width if source_vfov_deg is None
+                 else float(np.tan(np.radians(source_vfov_deg) / 2)))
+    src_vfov_deg = float(np.degrees(2 * np.arctan(src_tan_v)))
+    tolerance = 1e-6  # relative: the same camera described twice must not be refused for rounding
+    if target.tan_half_hfov > src_tan_h * (1 + tolerance):
         raise DepthFrameError(
             f"camera hfov {source_hfov_deg:.1f} deg is narrower than the policy's {target.hfov_deg:.1f} deg"
         )
-    keep_w = int(round(width * target.tan_half_hfov / src_tan))
-    keep_h = int(round(keep_w * target.height / target.width))
-    if keep_h > height:
+    if target.tan_half_vfov > src_tan_v * (1 + tolerance):
         raise DepthFrameError(
-            f"camera vertical field of view is too small for the policy's {target.vfov_deg:.1f} deg"
+            f"camera vfov {src_vfov_deg:.1f} deg is narrower than the policy's {target.vertical_fov_deg:.1f} deg"
         )
+    keep_w = min(width, max(1, int(round(width * target.tan_half_hfov / src_tan_h))))
+    keep_h = min(height, max(1, int(round(height * target.tan_half_vfov / src_tan_v))))
     top, left = (height - keep_h) // 2, (width - keep_w) // 2
     return depth_m[..., top : top + keep_h, left : left + keep_w]
 
@@ -202,8 +241,7 @@ def validate_depth_frame(depth_m: np.ndarray, camera: CameraSpec,
     if not np.issubdtype(depth_m.dtype, np.floating):
         raise DepthFrameError(f"depth frame must be floating-point metres, got dtype {depth_m.dtype}")
     check_not_blinded(depth_m, max_invalid_fraction)
-    valid = np.isfinite(depth_m) & (depth_m > 0)
-    return np.where(valid, np.minimum(depth_m, camera.max_range_m), camera.max_range_m).astype(np.float32)
+    return clean_depth(depth_m, camera.max_range_m)
 
 
 class DepthFrameStack:

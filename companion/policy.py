@@ -10,11 +10,13 @@ metadata as the extra file ``policy.json``. Its ``forward(depth, state)`` takes
 and returns float32 [B, 3] deterministic actions in physical units, already inside the
 action bounds. Normalisation happens inside the module, so callers pass raw metres.
 
-``policy.json`` (format version 1)::
+``policy.json`` (format version 2; docs/policy_file.md is the full contract)::
 
     {
-      "format_version": 1,
-      "depth": {"height": 32, "width": 32, "frames": 3, "hfov_deg": 90.0, "max_range_m": 20.0,
+      "format_version": 2,
+      "depth": {"height": 32, "width": 48, "frames": 3, "hfov_deg": 87.0, "vfov_deg": 58.0,
+                "mount_pitch_deg": 0.0, "min_range_m": 0.2, "max_range_m": 10.0,
+                "invalid_value_m": 0.0, "invalid_reads_as": "max_range_m",
                 "units": "m", "kind": "planar", "order": "oldest_first"},
       "control_period_s": 0.1,
       "body_frame": "heading FRD ...",
@@ -26,9 +28,11 @@ action bounds. Normalisation happens inside the module, so callers pass raw metr
     }
 
 :func:`load_policy` validates a file against this contract and refuses anything else with
-a :class:`PolicyFileError` that says what is wrong. ``task`` (the collision radius, arrival
-radius and time limit the policy was trained for, :class:`companion.spec.TaskSpec`) was added
-within version 1: a file without it was trained for the defaults and reads as them.
+a :class:`PolicyFileError` that says what is wrong. Version-1 files (the format before the
+real camera) are read as documented: a level camera at the vehicle's centre with square
+pixels (the vertical field of view from ``hfov_deg`` and the aspect), no minimum range,
+no-return pixels already ``max_range_m``, and ``task`` the defaults when absent;
+:attr:`LoadedPolicy.notes` says so, and the companion prints it.
 
 The same policy exported as ONNX (``policy.onnx``: inputs ``depth`` and ``state``, output
 ``action``, ``policy.json`` in the graph's ``metadata_props``) loads through the same checks
@@ -55,13 +59,21 @@ from companion.spec import (
     POLICY_MAX_IMAGE_SIDE_PX,
     POLICY_MAX_RANGE_M,
     DEFAULT_TASK_SPEC,
+    INVALID_DEPTH_M,
+    MAX_MOUNT_PITCH_DEG,
     STATE_NAMES,
     ActionSpec,
     CameraSpec,
     TaskSpec,
 )
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # what export writes
+READABLE_VERSIONS = (1, 2)
+#: The invalid-pixel convention of a version-2 file, the only one this companion implements:
+#: a raw pixel that reads this value (or is negative or non-finite) has no data, and the policy
+#: sees it as ``max_range_m`` (companion.observation.clean_depth).
+INVALID_VALUE_M = INVALID_DEPTH_M
+INVALID_READS_AS = "max_range_m"
 METADATA_FILE = "policy.json"
 BODY_FRAME = ("heading frame FRD as MAV_FRAME_BODY_NED: x forward along the heading, y right, z down; "
               "yaw from north, positive turning right")
@@ -78,7 +90,10 @@ def build_metadata(camera: CameraSpec, action: ActionSpec, control_period_s: flo
         "format_version": FORMAT_VERSION,
         "depth": {
             "height": camera.height, "width": camera.width, "frames": camera.frames,
-            "hfov_deg": camera.hfov_deg, "max_range_m": camera.max_range_m,
+            "hfov_deg": camera.hfov_deg, "vfov_deg": round(camera.vertical_fov_deg, 6),
+            "mount_pitch_deg": camera.mount_pitch_deg,
+            "min_range_m": camera.min_range_m, "max_range_m": camera.max_range_m,
+            "invalid_value_m": INVALID_VALUE_M, "invalid_reads_as": INVALID_READS_AS,
             "units": "m", "kind": "planar", "order": "oldest_first",
         },
         "control_period_s": control_period_s,
@@ -125,6 +140,9 @@ class LoadedPolicy:
     control_period_s: float
     path: str
     task: TaskSpec = DEFAULT_TASK_SPEC
+    format_version: int = FORMAT_VERSION
+    #: How an older file was read (empty for a current one): the companion prints these.
+    notes: tuple[str, ...] = ()
 
     def act(self, depth_m: np.ndarray, state: np.ndarray) -> np.ndarray:
         """Deterministic actions [B, 3] (float32) for a batch of observations."""
@@ -186,8 +204,9 @@ def _check_metadata(meta: object, path: str) -> tuple[CameraSpec, ActionSpec, fl
     """
     _require(isinstance(meta, dict), path, "policy.json is not a JSON object")
     version = meta.get("format_version")
-    _require(_is_number(version) and version == FORMAT_VERSION, path,
-             f"unsupported policy format_version {version!r} (this companion reads version {FORMAT_VERSION})")
+    _require(_is_number(version) and version in READABLE_VERSIONS, path,
+             f"unsupported policy format_version {version!r} (this companion reads versions "
+             f"{', '.join(str(v) for v in READABLE_VERSIONS)})")
     for key in ("depth", "control_period_s", "state_names", "action", "body_frame", "provenance"):
         _require(key in meta, path, f"policy.json lacks the field {key!r}")
 
@@ -207,8 +226,23 @@ def _check_metadata(meta: object, path: str) -> tuple[CameraSpec, ActionSpec, fl
     max_range_m = _finite_number(depth["max_range_m"], path, "depth max_range_m")
     _require(0 < max_range_m <= POLICY_MAX_RANGE_M, path,
              f"depth max_range_m must be in (0, {POLICY_MAX_RANGE_M:g}] m, file says {max_range_m:g}")
+    geometry = {}
+    if version >= 2:
+        for key in ("vfov_deg", "mount_pitch_deg", "min_range_m", "invalid_value_m", "invalid_reads_as"):
+            _require(key in depth, path, f"policy.json depth lacks the field {key!r} (required by format version 2)")
+        geometry["vfov_deg"] = _finite_number(depth["vfov_deg"], path, "depth vfov_deg")
+        geometry["mount_pitch_deg"] = _finite_number(depth["mount_pitch_deg"], path, "depth mount_pitch_deg")
+        _require(abs(geometry["mount_pitch_deg"]) <= MAX_MOUNT_PITCH_DEG, path,
+                 f"depth mount_pitch_deg must be within +-{MAX_MOUNT_PITCH_DEG:g} deg, "
+                 f"file says {geometry['mount_pitch_deg']:g}")
+        geometry["min_range_m"] = _finite_number(depth["min_range_m"], path, "depth min_range_m")
+        invalid = _finite_number(depth["invalid_value_m"], path, "depth invalid_value_m")
+        _require(invalid == INVALID_VALUE_M and depth["invalid_reads_as"] == INVALID_READS_AS, path,
+                 f"depth invalid-pixel convention {invalid:g} -> {depth['invalid_reads_as']!r:.40} differs from this "
+                 f"companion's {INVALID_VALUE_M:g} -> {INVALID_READS_AS!r}")
     try:
-        camera = CameraSpec(width=width, height=height, hfov_deg=hfov_deg, max_range_m=max_range_m, frames=frames)
+        camera = CameraSpec(width=width, height=height, hfov_deg=hfov_deg, max_range_m=max_range_m, frames=frames,
+                            **geometry)
     except ValueError as err:
         raise PolicyFileError(f"{path}: invalid depth specification ({err})") from None
 
@@ -237,7 +271,17 @@ def _check_metadata(meta: object, path: str) -> tuple[CameraSpec, ActionSpec, fl
         _require(lo < hi, path, f"action {name}: low {lo:g} must be below high {hi:g}")
         _require(lo_max <= lo and hi <= hi_max, path,
                  f"action {name} bounds [{lo:g}, {hi:g}] exceed the onboard limits [{lo_max:g}, {hi_max:g}]")
+    if version >= 2:
+        _require("task" in meta, path, "policy.json lacks the field 'task' (required by format version 2)")
     return camera, ActionSpec(spec.names, low, high), float(period), _check_task(meta.get("task"), path)
+
+
+def version1_notes(meta: dict, camera: CameraSpec) -> tuple[str, ...]:
+    """How a version-1 ``policy.json`` is read (docs/policy_file.md, "Version 1"), one line each."""
+    task = "its task" if meta.get("task") is not None else (
+        f"task defaults (R {DEFAULT_TASK_SPEC.collision_radius_m:g} m, arrival {DEFAULT_TASK_SPEC.arrival_radius_m:g} m)")
+    return (f"policy format version 1: read as a level camera, {camera.hfov_deg:g} x {camera.vertical_fov_deg:.4g} deg "
+            f"(square pixels), range 0-{camera.max_range_m:g} m, invalid pixels read {camera.max_range_m:g} m, {task}",)
 
 
 def _check_task(task: object, path: str) -> TaskSpec:
@@ -293,7 +337,9 @@ def load_policy(path: str | Path, *, check_forward: bool = True,
         problem = shape_problem(module, camera.frames, camera.height, camera.width, len(STATE_NAMES))
         _require(problem is None, path, str(problem))
     module.eval()
-    policy = LoadedPolicy(module, meta, camera, action, period_s, path, task)
+    version = int(meta["format_version"])
+    notes = version1_notes(meta, camera) if version == 1 else ()
+    policy = LoadedPolicy(module, meta, camera, action, period_s, path, task, version, notes)
     if check_forward:
         blank_depth = np.full((1, camera.frames, camera.height, camera.width), camera.max_range_m, np.float32)
         blank_state = np.zeros((1, len(STATE_NAMES)), np.float32)

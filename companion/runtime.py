@@ -97,8 +97,10 @@ MIN_INFERENCE_TIME_S = 0.001
 #: just before closing were lost with the TCP link on ArduPilot; 0.5 s of them stopped it.
 EXIT_HOLD_STREAM_S = 0.5
 EXIT_HOLD_RATE_HZ = 20.0
-#: How long to wait for the autopilot's HEARTBEAT to show the hold mode after asking for it.
-HAND_OVER_TIMEOUT_S = 3.0
+#: How long to wait for the autopilot's HEARTBEAT to show the hold mode after asking for it:
+#: HEARTBEAT comes at 1 Hz and the command may need a retry (1.5-1.9 s measured unloaded),
+#: so 5 s leaves room for a busy link or computer; the hold is streamed meanwhile.
+HAND_OVER_TIMEOUT_S = 5.0
 #: The mode a companion that stops commanding on purpose hands the vehicle to. PX4: AUTO.LOITER
 #: ("Hold"), which holds position without RC input. ArduCopter: BRAKE, which stops and then
 #: holds position without reading the sticks; LOITER would follow the RC throttle (SITL's

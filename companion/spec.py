@@ -93,14 +93,31 @@ class ActionSpec:
         return np.clip(action, low, high)
 
 
+#: What a depth pixel with no measurement reads on the wire and in a raw frame (metres): 0, as
+#: the RealSense SDK reports a pixel without a stereo match, one beyond the sensor's range or
+#: nearer than its minimum distance. Negative and non-finite values are invalid too (never a
+#: distance). :func:`companion.observation.clean_depth` turns every invalid pixel into
+#: ``max_range_m`` before the policy sees it, in training and in flight alike.
+INVALID_DEPTH_M = 0.0
+
+
 @dataclass(frozen=True)
 class CameraSpec:
     """A forward-looking pinhole depth camera giving *planar* depth in metres.
 
     Planar depth (AirSim's DepthPlanar, a RealSense's z16) is the distance along the
-    optical axis, not along the ray. Pixels are square, so the vertical field of view
-    follows from the horizontal one and the aspect ratio. Row 0 is the top of the image,
-    column 0 its left edge. Pixels with nothing within ``max_range_m`` read ``max_range_m``.
+    optical axis, not along the ray. Row 0 is the top of the image, column 0 its left edge.
+    The pixel grid samples ``hfov_deg`` x ``vfov_deg`` evenly; ``vfov_deg=None`` means square
+    pixels (the vertical field of view follows from ``hfov_deg`` and the aspect ratio: the
+    policy-file version-1 camera). A camera image is a min-pool of a real sensor's pixels
+    over this grid, so the policy's pixels need not be square.
+
+    The camera sits at the vehicle's centre, pitched ``mount_pitch_deg`` up (positive) or
+    down (negative) from the heading frame's forward axis (no roll, no yaw offset).
+
+    Range: a real sensor measures from ``min_range_m`` to ``max_range_m``; anything else is
+    "no data", reported as :data:`INVALID_DEPTH_M` (0). The policy sees every invalid pixel
+    and every farther one as ``max_range_m`` (:func:`companion.observation.clean_depth`).
     """
 
     width: int = 32
@@ -108,14 +125,25 @@ class CameraSpec:
     hfov_deg: float = 90.0
     max_range_m: float = 20.0
     frames: int = 3  # frames stacked into one observation, oldest first
+    vfov_deg: float | None = None  # None: square pixels (derived from hfov and aspect)
+    mount_pitch_deg: float = 0.0  # optical axis above (+) / below (-) the heading frame's forward axis
+    min_range_m: float = 0.0  # nearer returns are invalid on the sensor (0 m: an ideal camera)
 
     def __post_init__(self) -> None:
         if self.width < 1 or self.height < 1:
             raise ValueError(f"camera resolution must be positive, got {self.width}x{self.height}")
         if not 1.0 <= self.hfov_deg < 179.0:
             raise ValueError(f"camera hfov_deg must be in [1, 179), got {self.hfov_deg}")
+        if self.vfov_deg is not None and not 1.0 <= self.vfov_deg < 179.0:
+            raise ValueError(f"camera vfov_deg must be in [1, 179), got {self.vfov_deg}")
         if not self.max_range_m > 0:
             raise ValueError(f"camera max_range_m must be > 0, got {self.max_range_m}")
+        if not 0.0 <= self.min_range_m < self.max_range_m:
+            raise ValueError(f"camera min_range_m must be in [0, max_range_m = {self.max_range_m:g}), "
+                             f"got {self.min_range_m}")
+        if not -MAX_MOUNT_PITCH_DEG <= self.mount_pitch_deg <= MAX_MOUNT_PITCH_DEG:
+            raise ValueError(f"camera mount_pitch_deg must be in [-{MAX_MOUNT_PITCH_DEG:g}, {MAX_MOUNT_PITCH_DEG:g}], "
+                             f"got {self.mount_pitch_deg}")
         if self.frames < 1:
             raise ValueError(f"camera frames must be >= 1, got {self.frames}")
 
@@ -125,14 +153,46 @@ class CameraSpec:
 
     @property
     def tan_half_vfov(self) -> float:
-        return self.tan_half_hfov * self.height / self.width
+        if self.vfov_deg is None:
+            return self.tan_half_hfov * self.height / self.width
+        return math.tan(math.radians(self.vfov_deg) / 2.0)
 
     @property
-    def vfov_deg(self) -> float:
+    def vertical_fov_deg(self) -> float:
+        """The vertical field of view in degrees, given or derived from square pixels."""
         return math.degrees(2.0 * math.atan(self.tan_half_vfov))
+
+    @property
+    def mount_pitch_rad(self) -> float:
+        return math.radians(self.mount_pitch_deg)
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+#: Largest camera mount pitch (deg) a spec or a policy file may declare: beyond it the camera
+#: looks at the ground or the sky rather than ahead.
+MAX_MOUNT_PITCH_DEG = 45.0
+
+#: Intel RealSense D435 (and D455: same 87 x 58 deg depth field of view) as the policy sees it:
+#: 87 x 58 deg (datasheet), min-pooled to 48 x 32 pixels (chosen with
+#: ``benchmarks/camera_resolution.py``, docs/simulator.md), level mount, usable range
+#: 0.2-10 m (Min-Z ~0.2 m at 848x480; depth error ~2 % at 2 m growing with z^2, so beyond
+#: ~10 m the stereo match is noise: Intel D400 series datasheet and product page).
+REALSENSE_D435 = CameraSpec(width=48, height=32, hfov_deg=87.0, vfov_deg=58.0, max_range_m=10.0,
+                            min_range_m=0.2, frames=3, mount_pitch_deg=0.0)
+#: The image a simulated D435 sends to the companion (``sitl.vehicle --camera realsense_d435``):
+#: square pixels at 16:9 like the sensor's 848x480 / 1280x720 modes, downscaled to 160x90 to fit one
+#: UDP datagram, at the ~90 deg horizontal FOV a typical unit's intrinsics give (fx ~ width / 2;
+#: the datasheet's 87 x 58 deg is the guaranteed field, 90 x 58.7 deg what units deliver). The
+#: companion crops it to the policy's 87 x 58 deg and min-pools it to 48x32.
+REALSENSE_D435_SENSOR = CameraSpec(width=160, height=90, hfov_deg=90.0, max_range_m=10.0, min_range_m=0.2)
+#: The camera presets by name (``--camera NAME`` in sitl's command lines). ``paper``: the
+#: paper's 90 x 90 deg square camera with a 20 m range, the version-1 policy file's camera.
+CAMERA_PRESETS: dict[str, CameraSpec] = {"paper": CameraSpec(), "realsense_d435": REALSENSE_D435}
+#: The image each preset's sensor delivers (what ``sitl.vehicle`` renders and sends): the paper
+#: camera is rendered at the policy's own resolution, a real sensor at its own, wider, geometry.
+SENSOR_PRESETS: dict[str, CameraSpec] = {"paper": CameraSpec(), "realsense_d435": REALSENSE_D435_SENSOR}
 
 
 @dataclass(frozen=True)
@@ -163,13 +223,13 @@ DEFAULT_TASK_SPEC = TaskSpec()
 # --------------------------------------------------------------------------- onboard safety limits (issue 16)
 
 #: A depth frame with more than this fraction of invalid pixels (0, negative or non-finite,
-#: counted on the camera's raw image before any conversion) is a blinded or dead sensor, not
-#: an empty sky: the companion holds. A RealSense reports 0 where it has no stereo match. A
-#: level camera in open sky loses the sky (at most the upper half of the image) plus
-#: textureless patches below the horizon: typically 40-70 % invalid, so 50 % would hold in
-#: normal flight. A covered lens, a lens against a wall (inside the ~0.3 m minimum range),
-#: darkness or a dead sensor read 95-100 % invalid. 90 % separates the two with a margin on
-#: each side; the 10 % that must remain valid is still ~100 pixels of the 32x32 policy view.
+#: counted on the camera's raw image before any conversion) is a blinded or dead sensor: the
+#: companion holds. This is the limit for policies of an ideal camera (``min_range_m`` 0, the
+#: simulator's perfect depth, where only a dead or covered sensor reads 0). A real stereo
+#: sensor reports the sky and everything beyond its range as 0: a level D435 more than ~6 m
+#: above the ground reads > 90 % invalid in 99 % of normal frames (``benchmarks/camera_model.py``),
+#: so for a real sensor's policy the default is off
+#: (:func:`companion.observation.default_max_invalid_fraction`, docs/companion.md).
 MAX_INVALID_DEPTH_FRACTION = 0.90
 
 #: Goals (``--goal`` and run-time SET_POSITION_TARGET_LOCAL_NED) must be finite and within

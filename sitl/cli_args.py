@@ -246,6 +246,26 @@ def cylinder_rows(cylinders: list[list[float]] | None) -> list[list[float]] | No
     return [[c[0], c[1], c[2], -(c[3] if len(c) == 4 else 30.0), 0.0] for c in cylinders]
 
 
+def camera_preset(text: str) -> str:
+    """The name of a camera preset (``companion.spec.CAMERA_PRESETS``: paper, realsense_d435)."""
+    from companion.spec import CAMERA_PRESETS
+
+    if text not in CAMERA_PRESETS:
+        raise argparse.ArgumentTypeError(f"unknown camera {text!r}; choose one of {', '.join(CAMERA_PRESETS)}")
+    return text
+
+
+def fits_camera(policy_camera, sensor) -> str | None:
+    """Why a policy's camera cannot be cut from ``sensor``'s image (narrower in an axis), or None."""
+    for axis, need, have in (("horizontal", policy_camera.tan_half_hfov, sensor.tan_half_hfov),
+                             ("vertical", policy_camera.tan_half_vfov, sensor.tan_half_vfov)):
+        if need > have * (1 + 1e-6):
+            wanted = policy_camera.hfov_deg if axis == "horizontal" else policy_camera.vertical_fov_deg
+            got = sensor.hfov_deg if axis == "horizontal" else sensor.vertical_fov_deg
+            return f"the camera's {axis} field of view {got:.1f} deg is narrower than the policy's {wanted:.1f} deg"
+    return None
+
+
 def check_camera(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """Exit 2 with the reason unless ``--camera-size``, ``--hfov`` and ``--max-range`` make a valid camera."""
     from companion.spec import CameraSpec

@@ -68,17 +68,26 @@ def _hit_cylinder(o, d, cyl):
 
 
 def render_reference(spec: CameraSpec, supersample: int, pos_ned, yaw_rad, uavs_per_world, visible,
-                     body_radius_m, body_half_height_m, boxes, cylinders) -> np.ndarray:
-    """Render [M, H, W] planar depth by brute force (see module doc)."""
+                     body_radius_m, body_half_height_m, boxes, cylinders, pitch_rad=None,
+                     with_objects: bool = False):
+    """Render [M, H, W] planar depth by brute force (see module doc).
+
+    ``pitch_rad`` [M]: each camera's optical axis raised by this angle (default the spec's mount
+    pitch). With ``with_objects`` also return [M] the nearest non-ground planar depth of any sub-ray.
+    """
     pos_ned = np.asarray(pos_ned, dtype=float)
     total = pos_ned.shape[0]
+    pitch = np.full(total, math.radians(spec.mount_pitch_deg)) if pitch_rad is None else np.asarray(pitch_rad)
     sub_h, sub_w = spec.height * supersample, spec.width * supersample
     out = np.full((total, spec.height, spec.width), spec.max_range_m)
+    objects = np.full(total, spec.max_range_m)
     for m in range(total):
         o = pos_ned[m]
-        forward = np.array([math.cos(yaw_rad[m]), math.sin(yaw_rad[m]), 0.0])
+        heading = np.array([math.cos(yaw_rad[m]), math.sin(yaw_rad[m]), 0.0])
         right = np.array([-math.sin(yaw_rad[m]), math.cos(yaw_rad[m]), 0.0])
-        down = np.array([0.0, 0.0, 1.0])
+        # Pitch up by p: forward tilts towards -z (up), the image's down axis towards +heading.
+        forward = math.cos(pitch[m]) * heading + math.sin(pitch[m]) * np.array([0.0, 0.0, -1.0])
+        down = math.sin(pitch[m]) * heading + math.cos(pitch[m]) * np.array([0.0, 0.0, 1.0])
         world = m // uavs_per_world
         others = [k for k in range(world * uavs_per_world, (world + 1) * uavs_per_world) if k != m and visible[k]]
         for si in range(sub_h):
@@ -87,16 +96,18 @@ def render_reference(spec: CameraSpec, supersample: int, pos_ned, yaw_rad, uavs_
                 u = (2 * (sj + 0.5) / sub_w - 1) * spec.tan_half_hfov
                 ray = forward + u * right + v * down
                 unit = ray / np.linalg.norm(ray)
-                hits = []
+                ground = []
                 if o[2] >= 0:
-                    hits.append(0.0)
+                    ground.append(0.0)
                 elif unit[2] > 0:
-                    hits.append(-o[2] / unit[2])
-                hits += [_hit_spheroid(o, unit, pos_ned[k], body_radius_m, body_half_height_m) for k in others]
+                    ground.append(-o[2] / unit[2])
+                hits = [_hit_spheroid(o, unit, pos_ned[k], body_radius_m, body_half_height_m) for k in others]
                 hits += [_hit_box(o, unit, b) for b in boxes[world] if b[3] > 0]
                 hits += [_hit_cylinder(o, unit, c) for c in cylinders[world] if c[2] > 0]
-                euclid = min(hits) if hits else math.inf
+                euclid = min(hits + ground) if hits + ground else math.inf
                 planar = euclid * (unit @ forward)  # distance along the optical axis
                 i, j = si // supersample, sj // supersample
                 out[m, i, j] = min(out[m, i, j], planar, spec.max_range_m)
-    return out
+                if hits:
+                    objects[m] = min(objects[m], min(hits) * (unit @ forward))
+    return (out, objects) if with_objects else out

@@ -100,16 +100,68 @@ def test_invisible_uavs_are_not_drawn_and_no_self_view():
     assert cam.render(pos, np.zeros(2), 1).min() == spec.max_range_m
 
 
-def test_stereo_noise_grows_with_depth_and_drops_pixels():
+def test_stereo_noise_grows_with_depth_squared():
     rng = np.random.default_rng(0)
     near = np.full((200, 32, 32), 2.0, dtype=np.float32)
     far = np.full((200, 32, 32), 8.0, dtype=np.float32)
-    noise = StereoNoise(quadratic_coeff_per_m=0.005, dropout_prob=0.05)
-    noisy_near, noisy_far = noise.apply(near, 20.0, rng), noise.apply(far, 20.0, rng)
-    kept_near, kept_far = noisy_near[noisy_near < 20.0], noisy_far[noisy_far < 20.0]
-    assert kept_near.std() == pytest.approx(0.005 * 4, rel=0.1)
-    assert kept_far.std() == pytest.approx(0.005 * 64, rel=0.1)
-    assert (noisy_near == 20.0).mean() == pytest.approx(0.05, abs=0.01)
+    noise = StereoNoise(edge_hole_prob=0.0, blob_prob=0.0)
+    noisy_near, noisy_far = noise.apply(near, 10.0, rng), noise.apply(far, 10.0, rng)
+    kept_near, kept_far = noisy_near[noisy_near > 0], noisy_far[noisy_far > 0]
+    coeff = noise.baseline_m and noise.subpixel_px / (noise.focal_px * noise.baseline_m)
+    assert kept_near.std() == pytest.approx(coeff * 4, rel=0.1)
+    assert kept_far.std() == pytest.approx(coeff * 64, rel=0.1)
+    # Holes: the per-pixel dropout everywhere, plus far pixels failing to match more often.
+    hole_near, hole_far = (noisy_near == 0).mean(), (noisy_far == 0).mean()
+    assert hole_near == pytest.approx(0.01 + 0.3 * 0.2 ** 2, abs=0.005)
+    assert hole_far == pytest.approx(0.01 + 0.3 * 0.8 ** 2, abs=0.01)
+
+
+def test_stereo_noise_reports_no_data_as_zero_not_a_noisy_far_wall():
+    rng = np.random.default_rng(1)
+    spec = CameraSpec(width=32, height=24, hfov_deg=87.0, vfov_deg=58.0, max_range_m=10.0)
+    # Level, 15 m up: nothing within 10 m, every pixel is sky or far ground.
+    perfect = DepthCamera(spec, 2).render(np.array([[0.0, 0.0, -15.0]]), np.zeros(1), 1)
+    assert np.all(perfect == spec.max_range_m)
+    noisy = StereoNoise().apply(perfect, spec.max_range_m, rng)
+    assert np.all(noisy == 0.0)
+    # A box edge: holes cluster at the depth discontinuity.
+    depth = np.full((400, 8, 8), 9.0, dtype=np.float32)
+    depth[:, :, :4] = 2.0
+    noisy = StereoNoise(dropout_prob=0.0, far_hole_prob=0.0, blob_prob=0.0).apply(depth, 10.0, rng)
+    holes = (noisy == 0).mean(axis=(0, 1))
+    assert holes[3] == pytest.approx(0.3, abs=0.05) and holes[4] == pytest.approx(0.3, abs=0.05)
+    assert holes[0] == 0 and holes[7] == 0
+
+
+def test_pitched_camera_and_nearest_object_match_reference():
+    rng = np.random.default_rng(11)
+    spec = CameraSpec(width=9, height=6, hfov_deg=87.0, vfov_deg=58.0, max_range_m=12.0)
+    geom = SceneGeometry(body_radius_m=0.6, body_half_height_m=0.3)
+    pos, yaw, visible, boxes, cylinders = _random_scene(rng, worlds=2, per_world=5)
+    pitch = rng.uniform(-0.4, 0.4, 10)
+    fast, nearest = DepthCamera(spec, 2, geom).render_with_objects(pos, yaw, 5, visible, boxes, cylinders,
+                                                                   pitch_rad=pitch)
+    slow, slow_nearest = render_reference(spec, 2, pos, yaw, 5, visible, geom.body_radius_m, geom.body_half_height_m,
+                                          boxes, cylinders, pitch_rad=pitch, with_objects=True)
+    np.testing.assert_allclose(fast, slow, atol=2e-4)
+    np.testing.assert_allclose(nearest, slow_nearest, atol=2e-4)
+    assert (nearest < spec.max_range_m).sum() >= 3  # objects are in view of several cameras
+
+
+def test_pitch_moves_the_horizon_and_the_ground_is_not_an_object():
+    spec = CameraSpec(width=8, height=31, hfov_deg=60.0, vfov_deg=40.0, max_range_m=50.0)
+    cam = DepthCamera(spec, 1)
+    pos = np.array([[0.0, 0.0, -2.0]])
+    level, nearest = cam.render_with_objects(pos, np.zeros(1), 1)
+    down = cam.render(pos, np.zeros(1), 1, pitch_rad=np.radians([-10.0]))
+    up = cam.render(pos, np.zeros(1), 1, pitch_rad=np.radians([10.0]))
+    first_ground_row = lambda img: int(np.argmax(img[:, 0] < spec.max_range_m))  # noqa: E731
+    assert first_ground_row(down[0]) < first_ground_row(level[0]) < first_ground_row(up[0])
+    assert level[0, :16].min() == spec.max_range_m  # nothing at or above the horizon (the centre row)
+    # The ground fills the lower half of the image, but no UAV or obstacle is in view.
+    assert level.min() < 6.0 and nearest[0] == spec.max_range_m
+    # Planar depth of the ground in the centre row of a camera pitched down 10 deg: 2 / sin(10 deg).
+    assert down[0, 15, 0] == pytest.approx(2.0 / math.sin(math.radians(10.0)), rel=0.02)
 
 
 def test_bad_arguments():
@@ -119,3 +171,18 @@ def test_bad_arguments():
         DepthCamera(CameraSpec(), 1).render(np.zeros((3, 3)), np.zeros(3), 2)
     with pytest.raises(ValueError, match="hfov"):
         CameraSpec(hfov_deg=200)
+
+
+def test_a_simulated_d435_image_becomes_what_the_policy_was_trained_on():
+    """sitl.vehicle's 160x90 D435 image, through the companion's converter, matches the policy camera's render."""
+    from companion.depth_sources import DepthConverter
+    from companion.spec import REALSENSE_D435, REALSENSE_D435_SENSOR
+
+    pos = np.array([[0.0, 0.0, -2.5], [5.0, 1.0, -2.5]])  # 2.5 m up, a UAV 5 m ahead, slightly right
+    sensor = DepthCamera(REALSENSE_D435_SENSOR, 2).render(pos, np.zeros(2), 2)[0]
+    converted = DepthConverter(REALSENSE_D435, max_invalid_fraction=1.0).convert(sensor, REALSENSE_D435_SENSOR.hfov_deg)
+    trained = DepthCamera(REALSENSE_D435, 4).render(pos, np.zeros(2), 2)[0]
+    assert converted.shape == trained.shape == (32, 48)
+    assert converted.min() == pytest.approx(trained.min(), abs=0.05)  # the UAV, ~4.7 m
+    # Same picture: the ground rows and the UAV's pixels agree to within a pixel's footprint.
+    assert np.mean(np.abs(converted - trained) < 0.5) > 0.9

@@ -105,6 +105,7 @@ CASES = {
         ["--signing-key", f"{MISSING_DIR}/key"], ["--log", f"{MISSING_DIR}/v.jsonl"],
         ["--trace", f"{UNWRITABLE_DIR}/trace.jsonl"], ["--trace", "/tmp"], ["--duration", "0"],
         ["--duration", "nan"], ["--host", "no-such-host.invalid"], ["--dynamics", "warp"], ["--autopilot", "inav"],
+        ["--camera", "kinect"], ["--camera", "realsense_d435", "--hfov", "nan"],
     ],
     "world": [
         ["--px4", "0"], ["--px4", "300"], ["--px4", "2", "--px4-first-instance", "-1"],
@@ -123,6 +124,7 @@ CASES = {
         ["--batch", "10000000"], ["--threads", "100000"], ["--max-steps", "0"], ["--plot-episodes", "-1"],
         ["--out", f"{UNWRITABLE_DIR}/out"], ["--json", f"{UNWRITABLE_DIR}/m.json"], ["--scenario", "maze"],
         ["--mavlink", "--base-port", "80"], ["--mavlink", "--n", "200", "--base-port", "65500"],
+        ["--camera", "kinect"], ["--camera", ""],
     ],
     "swarm_test_main": [["--policy", f"{MISSING_DIR}/policy.pt", "--no-progress"]],
     "paper": [
@@ -133,6 +135,7 @@ CASES = {
     "train": [
         ["--discount", "nan"], ["--discount", "1.5"], ["--discount", "0"], ["--n-step", "0"], ["--n-step", "x"],
         ["--num-uavs", "0"], ["--num-worlds", "abc"], ["--image-size", "8"], ["--image-size", "100000"],
+        ["--camera", "kinect"], ["--mount-pitch-jitter-deg", "nan"], ["--mount-pitch-jitter-deg", "90"],
         ["--replay-capacity", "0"], ["--replay-capacity", "1e12"], ["--critic-lr", "-1"], ["--actor-lr", "inf"],
         ["--hidden-dim", "1000000000"], ["--seed", "-1"], ["--threads", "0"], ["--device", "warp9"],
         ["--density", "inf"], ["--checkpoint-every-s", "0"], ["--checkpoint-every-s", "inf"],

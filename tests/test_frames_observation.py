@@ -131,3 +131,39 @@ def test_action_spec_clips_and_rejects_nan():
         spec.validate(np.array([[3.0, 0.0, 0.0]]), clip=False)
     with pytest.raises(ValueError, match="shape"):
         spec.validate(np.zeros((2, 2)))
+
+
+def test_clean_depth_is_the_one_invalid_pixel_conversion():
+    from companion.observation import clean_depth
+
+    raw = np.array([[0.0, -1.0, np.nan, np.inf], [0.3, 9.99, 10.0, 42.0]], dtype=np.float32)
+    np.testing.assert_array_equal(clean_depth(raw, 10.0),
+                                  np.float32([[10.0, 10.0, 10.0, 10.0], [0.3, 9.99, 10.0, 10.0]]))
+    # The companion's path (min-pool, validate) gives the same values as the simulator's.
+    spec = CameraSpec(width=4, height=2, max_range_m=10.0)
+    np.testing.assert_array_equal(validate_depth_frame(raw, spec, max_invalid_fraction=1.0), clean_depth(raw, 10.0))
+
+
+def test_crop_to_both_fields_of_view_of_a_realsense():
+    from companion.spec import REALSENSE_D435, REALSENSE_D435_SENSOR
+
+    sensor = np.arange(90 * 160, dtype=np.float32).reshape(90, 160) + 1
+    crop = crop_to_hfov(sensor, REALSENSE_D435_SENSOR.hfov_deg, REALSENSE_D435)
+    # 87 of 90 deg wide (tan ratio 0.949 -> 152 of 160 columns), 58 of 58.7 deg high (89 of 90 rows).
+    assert crop.shape == (89, 152) and crop[0, 0] == sensor[0, 4]
+    assert min_pool_depth(crop, 32, 48, 10.0).shape == (32, 48)
+    # A sensor with the right width but a narrower vertical field is refused in one line.
+    with pytest.raises(DepthFrameError, match=r"^camera vfov 48\.5 deg is narrower than the policy's 58\.0 deg$"):
+        crop_to_hfov(np.ones((72, 160), np.float32), 90.0, REALSENSE_D435)
+    # An explicit source vfov overrides the square-pixel assumption.
+    assert crop_to_hfov(np.ones((72, 160), np.float32), 90.0, REALSENSE_D435, source_vfov_deg=60.0).shape[0] == 69
+
+
+def test_blinded_check_default_is_off_for_a_real_sensor_only():
+    from companion.observation import default_max_invalid_fraction
+    from companion.spec import MAX_INVALID_DEPTH_FRACTION, REALSENSE_D435
+
+    assert default_max_invalid_fraction(CameraSpec()) == MAX_INVALID_DEPTH_FRACTION
+    assert default_max_invalid_fraction(REALSENSE_D435) == 1.0
+    # Off means an all-invalid frame (open sky above the sensor's range) is not a fault.
+    validate_depth_frame(np.zeros((32, 48), np.float32), REALSENSE_D435, max_invalid_fraction=1.0)

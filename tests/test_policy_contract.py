@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -32,11 +33,14 @@ def test_exported_policy_matches_the_agent_and_carries_metadata(agent, tmp_path)
     np.testing.assert_allclose(policy.act(depth, state), agent.act(depth, state, explore=False), atol=1e-5)
     meta = policy.metadata
     assert meta["format_version"] == FORMAT_VERSION
-    assert meta["depth"] == {"height": 16, "width": 16, "frames": 3, "hfov_deg": 90.0, "max_range_m": 20.0,
+    assert meta["depth"] == {"height": 16, "width": 16, "frames": 3, "hfov_deg": 90.0, "vfov_deg": 90.0,
+                             "mount_pitch_deg": 0.0, "min_range_m": 0.0, "max_range_m": 20.0,
+                             "invalid_value_m": 0.0, "invalid_reads_as": "max_range_m",
                              "units": "m", "kind": "planar", "order": "oldest_first"}
     assert meta["action"]["low"] == [0.0, -0.5, -0.5] and meta["action"]["high"] == [2.0, 0.5, 0.5]
     assert meta["provenance"]["method"] == "sac_ae" and "git_commit" in meta["provenance"]
-    assert policy.camera == CAMERA and policy.control_period_s == 0.1
+    assert policy.camera == dataclasses.replace(CAMERA, vfov_deg=90.0) and policy.control_period_s == 0.1
+    assert policy.format_version == 2 and policy.notes == ()
     # Plain torch.jit.load works too, as the contract promises.
     extra = {"policy.json": ""}
     module = torch.jit.load(str(path), _extra_files=extra)
@@ -250,6 +254,58 @@ def test_the_task_a_policy_was_trained_for_is_recorded_and_read(tmp_path):
     path = tmp_path / "task.pt"
     save_policy(_Const(0.0), build_metadata(CAMERA, DEFAULT_ACTION_SPEC, 0.1, {}, task), path)
     assert load_policy(path).task == task
-    old = _meta()
+    old = _meta_v1()
     del old["task"]
     assert load_policy(_write_raw(tmp_path / "old.pt", old)).task == DEFAULT_TASK_SPEC
+    # Version 2 must say what it was trained for.
+    no_task = _meta()
+    del no_task["task"]
+    with pytest.raises(PolicyFileError, match="lacks the field 'task'"):
+        load_policy(_write_raw(tmp_path / "no_task.pt", no_task))
+
+
+def _meta_v1(**changes) -> dict:
+    """A version-1 policy.json (as the bundled policy carries): no camera geometry beyond hfov and range."""
+    meta = _meta(**changes)
+    meta["format_version"] = 1
+    for key in ("vfov_deg", "mount_pitch_deg", "min_range_m", "invalid_value_m", "invalid_reads_as"):
+        del meta["depth"][key]
+    return meta
+
+
+def test_version_1_files_read_as_documented_and_say_so(tmp_path):
+    policy = load_policy(_write_raw(tmp_path / "v1.pt", _meta_v1()))
+    cam = policy.camera
+    assert policy.format_version == 1
+    assert (cam.hfov_deg, cam.vertical_fov_deg, cam.mount_pitch_deg, cam.min_range_m, cam.max_range_m) == \
+        pytest.approx((90.0, 90.0, 0.0, 0.0, 20.0))
+    assert len(policy.notes) == 1 and policy.notes[0].startswith("policy format version 1: read as a level camera, "
+                                                                 "90 x 90 deg (square pixels), range 0-20 m")
+
+
+def test_version_2_camera_geometry_round_trips(tmp_path):
+    from companion.spec import REALSENSE_D435
+
+    path = tmp_path / "d435.pt"
+    save_policy(_Const(0.0), build_metadata(REALSENSE_D435, DEFAULT_ACTION_SPEC, 0.1, {}), path)
+    assert load_policy(path).camera == REALSENSE_D435
+    pitched = dataclasses.replace(REALSENSE_D435, mount_pitch_deg=-7.5)
+    save_policy(_Const(0.0), build_metadata(pitched, DEFAULT_ACTION_SPEC, 0.1, {}), path)
+    assert load_policy(path).camera.mount_pitch_deg == -7.5
+
+
+@pytest.mark.parametrize("changes, reason", [
+    ({"depth.vfov_deg": None}, "depth vfov_deg must be a number"),
+    ({"depth.vfov_deg": 180.0}, "vfov_deg must be in"),
+    ({"depth.mount_pitch_deg": 60.0}, "mount_pitch_deg must be within"),
+    ({"depth.min_range_m": 30.0}, "min_range_m must be in"),
+    ({"depth.invalid_value_m": 65.535}, "invalid-pixel convention 65.535"),
+    ({"depth.invalid_reads_as": "zero"}, "invalid-pixel convention 0 -> 'zero'"),
+])
+def test_bad_version_2_camera_fields_are_refused(tmp_path, changes, reason):
+    with pytest.raises(PolicyFileError, match=reason):
+        load_policy(_write_raw(tmp_path / "bad.pt", _meta(**changes)))
+    missing = _meta()
+    del missing["depth"]["mount_pitch_deg"]
+    with pytest.raises(PolicyFileError, match="lacks the field 'mount_pitch_deg'"):
+        load_policy(_write_raw(tmp_path / "missing.pt", missing))

@@ -107,3 +107,29 @@ def test_spl_matches_equation_9_by_hand():
     assert s["extra_distance_m"]["mean"] == pytest.approx((2.0 - 0.4) / 2)
     assert s["collision_uav_rate"] == 0.25 and s["timeout_rate"] == 0.25 and s["collision_ground_rate"] == 0.0
     assert math.isnan(spl([]))
+
+
+def _hover_reward(altitude_m: float, counts_ground: bool, other_ahead_m: float | None = None) -> float:
+    """The reward of UAV 0 hovering level at ``altitude_m`` in an empty scene (UAV 1 far behind or ahead)."""
+    cfg = SimConfig(num_uavs=2, scenario=ScenarioConfig(name="circle", circle_radius_m=30.0, circle_jitter_m=0.0),
+                    reward=RewardConfig(avoid_counts_ground=counts_ground))
+    env = SwarmEnv(cfg, seed=0)
+    env.reset()
+    other = [other_ahead_m, 0.0, -altitude_m] if other_ahead_m is not None else [-50.0, 0.0, -altitude_m]
+    env.dynamics.reset(np.arange(2), np.array([[0.0, 0.0, -altitude_m], other]), np.zeros(2))
+    env.goal_ned[:] = env.dynamics.pos_ned  # no progress term while hovering
+    env.goal_ned[:, 0] += 20.0
+    _, reward, *_ = env.step(np.zeros((2, 3)))
+    return float(reward[0])
+
+
+def test_the_ground_counts_in_d_min_only_when_the_reward_config_says_so():
+    """Paper eq. 4 with the ground: hovering at 2 m costs w_avoid * (5 - ~2) per step; without it, nothing."""
+    with_ground = _hover_reward(2.0, counts_ground=True)
+    assert with_ground == pytest.approx(-0.05 * (5.0 - 2.016), abs=2e-3)
+    assert _hover_reward(2.0, counts_ground=False) == 0.0
+    assert _hover_reward(8.0, counts_ground=True) == 0.0  # the ground beyond d_safe costs nothing either way
+    # Another UAV 3 m ahead counts in both: its surface is 2.7 m away (R = 0.3 m).
+    near_uav = _hover_reward(8.0, counts_ground=False, other_ahead_m=3.0)
+    assert near_uav == pytest.approx(-0.05 * (5.0 - 2.7), abs=2e-3)
+    assert _hover_reward(8.0, counts_ground=True, other_ahead_m=3.0) == pytest.approx(near_uav, abs=1e-6)

@@ -136,3 +136,40 @@ def test_mixed_scenario_draws_circles_with_the_given_fraction():
     assert not any(np.allclose(sample_scenario(8, only_random, rng).goal_ned[:, 2], -10.0) for _ in range(20))
     with pytest.raises(ValueError, match="circle_fraction"):
         ScenarioConfig(name="mixed", circle_fraction=1.5)
+
+
+def test_mount_pitch_is_drawn_per_episode_within_the_jitter():
+    import math
+
+    from companion.spec import REALSENSE_D435
+    from sitl.sim.config import SimConfig
+    from sitl.sim.env import SwarmEnv
+
+    env = SwarmEnv(SimConfig(num_uavs=4, num_worlds=50, camera=REALSENSE_D435, mount_pitch_jitter_deg=5.0), seed=3)
+    env.reset()
+    first = env.mount_pitch_rad.copy()
+    assert np.abs(first).max() <= math.radians(5.0) and np.abs(first).max() > math.radians(4.0)
+    assert len(np.unique(first)) == first.size  # every camera its own
+    env.reset()
+    assert not np.array_equal(first, env.mount_pitch_rad)
+    level = SwarmEnv(SimConfig(num_uavs=4, camera=REALSENSE_D435), seed=3)
+    level.reset()
+    assert np.all(level.mount_pitch_rad == 0.0)
+    with pytest.raises(ValueError, match="mount_pitch_jitter_deg"):
+        SimConfig(mount_pitch_jitter_deg=45.0)
+
+
+def test_a_noisy_real_camera_reaches_the_policy_through_the_companion_conversion():
+    from companion.spec import REALSENSE_D435
+    from sitl.sim.camera import StereoNoise
+    from sitl.sim.config import SimConfig
+    from sitl.sim.env import SwarmEnv
+
+    env = SwarmEnv(SimConfig(num_uavs=8, num_worlds=4, camera=REALSENSE_D435, camera_noise=StereoNoise()), seed=0)
+    obs = env.reset()
+    for _ in range(5):
+        obs, *_ = env.step(straight_to_goal(obs.state))
+    depth = obs.depth
+    assert depth.shape == (32, 3, 32, 48)
+    assert depth.min() > 0 and depth.max() == REALSENSE_D435.max_range_m  # no zeros: holes read max range
+    assert 0.3 < np.mean(depth[:, -1] == REALSENSE_D435.max_range_m) < 1.0  # holes and sky, but not only

@@ -301,7 +301,7 @@ def test_help_shows_the_defaults_a_run_uses(preset, capsys):
     with pytest.raises(SystemExit):
         parse([*argv, "--help"])
     text = " ".join(capsys.readouterr().out.split())
-    cfg, agent_cfg, _ = parse(argv)
+    cfg, agent_cfg, _, _ = parse(argv)
     values = {**dataclasses.asdict(agent_cfg), **dataclasses.asdict(cfg)}
     checked = 0
     for action in build_parser(preset)._actions:  # the parser parse() builds for these arguments

@@ -21,7 +21,9 @@ UAV: the privileged classical reference, :mod:`sitl.eval.orca`).
 episodes.
 
 ``python -m sitl.swarm_test paper`` reproduces the paper's Table II and Fig. 6 (resumable;
-``paper --help``). Evaluation seeds are ``EVAL_SEED_OFFSET + --seed``, disjoint from
+``paper --help``); ``python -m sitl.swarm_test flown`` runs the protocol of the task as flown:
+altitudes 1.5-15 m, circles of 8-20 m at 2-15 m, start jitter, obstacles, camera noise and a
+JSBSim cell, success split by goal altitude (resumable; ``flown --help``). Evaluation seeds are ``EVAL_SEED_OFFSET + --seed``, disjoint from
 training seeds; episodes run as parallel worlds and the policy is evaluated in one batch
 over every acting UAV of every world.
 """
@@ -38,6 +40,7 @@ from pathlib import Path
 from companion.spec import DEFAULT_TASK_SPEC
 from sitl.cli_args import (
     ArgumentParser,
+    camera_preset,
     MAX_THREADS,
     MAX_VEHICLES,
     float_range,
@@ -76,8 +79,11 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
                         help=f"evaluation seed; the simulator uses {EVAL_SEED_OFFSET} + SEED, disjoint from training")
     parser.add_argument("--dynamics", choices=DYNAMICS_NAMES, default=DYNAMICS_NAMES[0],
                         help="UAV dynamics (default kinematic)")
-    parser.add_argument("--camera-noise", action=argparse.BooleanOptionalAction, default=False,
-                        help="stereo depth noise and dropouts (default off: perfect depth)")
+    parser.add_argument("--camera", type=camera_preset, default=None,
+                        help="camera preset the UAVs carry: paper or realsense_d435 (default: the policy's own camera, "
+                             "paper for the references); a policy must fit in it (its FOV cut from the camera's)")
+    parser.add_argument("--camera-noise", action=argparse.BooleanOptionalAction, default=None,
+                        help="stereo depth noise with holes (default: on with --camera realsense_d435, else off)")
     parser.add_argument("--max-steps", type=int_range(1, MAX_EPISODE_STEPS), default=DEFAULT_TASK_SPEC.max_episode_steps,
                         help=f"episode time limit in control steps (default {DEFAULT_TASK_SPEC.max_episode_steps} = "
                              f"{DEFAULT_TASK_SPEC.max_episode_steps / 10:g} s at 10 Hz)")
@@ -116,6 +122,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     mav.add_argument("--depth-port", type=_port, default=14640, help="vehicle i's depth frames to UDP depth-port + i")
     mav.add_argument("--gcs-port", type=_port, default=14550, help="ground-station port of every vehicle (this process)")
     args = parser.parse_args(argv)
+    if args.camera_noise is None:  # a real sensor's preset brings its noise
+        args.camera_noise = args.camera not in (None, "paper") and not args.mavlink
     if args.episodes is None:
         args.episodes = 10 if args.mavlink else 100
     if args.mavlink:
@@ -123,6 +131,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
             parser.error(f"--mavlink flies a policy file in the companion; {args.policy!r} is an in-process reference")
         if args.camera_noise:
             parser.error("--mavlink: sitl.vehicle renders perfect depth; --camera-noise is in-process only")
+        if args.scenario == "obstacles":
+            parser.error("--mavlink: sitl.vehicle has no per-episode obstacles; the obstacles scene is in-process only")
         if args.start is None:
             args.start = "ground" if args.scenario == "circle" else "airborne"
         if args.start == "ground" and args.scenario == "random":
@@ -169,7 +179,7 @@ _port = port_in(1024, 65535)  # unprivileged ports for the --mavlink processes
 def _scenario_tag(scenario: ScenarioConfig) -> str:
     if scenario.name == "circle":
         return f"circle-r{scenario.circle_radius_m:g}"
-    return f"random-{density_label(scenario.density).replace('/', '')}"
+    return f"{scenario.name}-{density_label(scenario.density).replace('/', '')}"
 
 
 def run_single(args: argparse.Namespace) -> int:
@@ -184,7 +194,7 @@ def run_single(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     settings = EvalSettings(scenario=args.scenario_config, num_uavs=args.n, episodes=args.episodes, seed=args.seed,
                             dynamics=args.dynamics, camera_noise=args.camera_noise, max_episode_steps=args.max_steps,
-                            batch_worlds=args.batch)
+                            batch_worlds=args.batch, camera=args.camera)
     methods = [method]
     if args.reference and not (method.kind == "baseline" and method.label == "straight"):
         methods.append(resolve_method("straight"))
@@ -307,12 +317,16 @@ def parse_paper_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--table-episodes", type=int_range(1, MAX_EPISODES), default=None,
                         help="episodes per Table II cell (default 500: random-scene success differs between "
                              "methods by a few points, which 100 episodes cannot resolve; cells are cheap)")
+    parser.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
+                        help="evaluate the cells as Ray tasks (1 CPU each): on a Ray started on this machine, or on "
+                             "the cluster at ADDRESS (auto, ray://head:10001); needs the [ray] extra")
     _add_common(parser)
     args = parser.parse_args(argv)
     if args.episodes is None:
         args.episodes = 100
     if args.table_episodes is None:
         args.table_episodes = max(500, args.episodes)
+    args.camera_noise = bool(args.camera_noise)  # the paper protocol: perfect depth unless asked for
     try:
         args.policy_paths = parse_policies(args.policies)
     except ValueError as err:
@@ -322,6 +336,14 @@ def parse_paper_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def paper_main(argv: list[str] | None = None) -> int:
     args = parse_paper_args(argv)
+    from sitl.distributed import RayUnavailable, import_ray
+
+    if args.ray is not None:
+        try:
+            import_ray()
+        except RayUnavailable as err:
+            print(f"error: --ray: {err}", file=sys.stderr)
+            return 2
     import torch
 
     torch.set_num_threads(args.threads)
@@ -332,8 +354,8 @@ def paper_main(argv: list[str] | None = None) -> int:
         if not path.exists():
             print(f"{method}: {path} not found, reported as 'not trained'", file=sys.stderr)
     try:
-        result = run_paper(args.out, table, fig6, args.progress, args.policy_paths)
-    except (EvaluationError, OSError) as err:  # OSError: the output folder became unwritable
+        result = run_paper(args.out, table, fig6, args.progress, args.policy_paths, ray_address=args.ray)
+    except (EvaluationError, OSError, RayUnavailable) as err:  # OSError: the output folder became unwritable
         print(f"error: {err}", file=sys.stderr)
         return 2
     counts = {k: list(result["status"].values()).count(k) for k in ("computed", "stored", "not trained")}
@@ -343,10 +365,74 @@ def paper_main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def parse_flown_args(argv: list[str] | None = None) -> argparse.Namespace:
+    from sitl.eval.flown import DEFAULT_EPISODES
+
+    parser = ArgumentParser(
+        prog="python -m sitl.swarm_test flown",
+        description="The task as flown (issue 15): random small/medium/large scenes with starts and goals "
+                    "1.5-15 m above the ground, a circle of 8 at 2-15 m (radius 8-20 m), an obstacle scene and "
+                    "random medium on JSBSim; start jitter 0.5 m and camera noise everywhere; the straight "
+                    "reference beside every cell; success split by goal altitude. One JSON per cell and "
+                    "controller under OUT/cells (an identical one is reused, so an interrupted run resumes); "
+                    "OUT/flown.md, flown.json, flown_success.png.")
+    parser.add_argument("--policy", default=str(DEFAULT_POLICY),
+                        help=f"policy file, or a reference: {', '.join(BASELINES)} (default {DEFAULT_POLICY})")
+    parser.add_argument("--out", type=output_dir, default=Path("runs/flown"), help="output folder (default runs/flown)")
+    parser.add_argument("--episodes", type=int_range(1, MAX_EPISODES), default=DEFAULT_EPISODES,
+                        help=f"episodes per cell (default {DEFAULT_EPISODES})")
+    parser.add_argument("--jsbsim-episodes", type=int_range(1, MAX_EPISODES), default=None,
+                        help="episodes of the JSBSim cell (default --episodes; it runs ~10x slower)")
+    parser.add_argument("--no-jsbsim", dest="jsbsim", action="store_false", help="leave the JSBSim cell out")
+    parser.add_argument("--seed", type=int_range(0), default=0,
+                        help=f"evaluation seed; the simulator uses {EVAL_SEED_OFFSET} + SEED, disjoint from training")
+    parser.add_argument("--camera-noise", action=argparse.BooleanOptionalAction, default=True,
+                        help="stereo depth noise and dropouts (default on: a real camera)")
+    parser.add_argument("--max-steps", type=int_range(1, MAX_EPISODE_STEPS), default=DEFAULT_TASK_SPEC.max_episode_steps,
+                        help=f"episode time limit in control steps (default {DEFAULT_TASK_SPEC.max_episode_steps})")
+    parser.add_argument("--no-reference", dest="reference", action="store_false",
+                        help="do not fly the straight-to-goal reference beside the controller")
+    parser.add_argument("--batch", type=int_range(1, MAX_BATCH), default=100,
+                        help="episodes flown at once as parallel worlds (default 100)")
+    parser.add_argument("--threads", type=int_range(1, MAX_THREADS), default=2, help="torch threads for the policy (default 2)")
+    parser.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
+    args = parser.parse_args(argv)
+    args.parser = parser
+    return args
+
+
+def flown_main(argv: list[str] | None = None) -> int:
+    from sitl.eval.flown import flown_cells, protocol_methods, run_flown
+
+    args = parse_flown_args(argv)
+    try:
+        methods = protocol_methods(args.policy, args.reference)
+    except EvaluationError as err:
+        args.parser.error(str(err))
+    if methods[0].kind == "policy":
+        import torch
+
+        torch.set_num_threads(args.threads)
+    cells = flown_cells(args.episodes, args.seed, args.camera_noise, max_steps=args.max_steps, batch=args.batch,
+                        jsbsim=args.jsbsim, jsbsim_episodes=args.jsbsim_episodes)
+    try:
+        result = run_flown(args.out, cells, methods, args.progress)
+    except (EvaluationError, OSError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    counts = {k: list(result["status"].values()).count(k) for k in ("computed", "stored")}
+    print((args.out / "flown.md").read_text())
+    print(f"\ncells: {counts['computed']} computed, {counts['stored']} reused; wrote {args.out / 'flown.md'}, "
+          f"{args.out / 'flown.json'}, {args.out / 'flown_success.png'}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["paper"]:
         return paper_main(argv[1:])
+    if argv[:1] == ["flown"]:
+        return flown_main(argv[1:])
     args = parse_args(argv)
     args.argv = argv
     if args.mavlink:

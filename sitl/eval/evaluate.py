@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 from companion.spec import DEFAULT_TASK_SPEC
 from sitl.eval.methods import EvaluationError, Method
 from sitl.eval.report import collision_rate
+from companion.spec import CAMERA_PRESETS
+from sitl.cli_args import fits_camera
 from sitl.sim.camera import StereoNoise
 from sitl.sim.config import DENSITIES, ScenarioConfig, SimConfig
 from sitl.sim.episodes import ScenarioError, StepObserver, run_episodes
@@ -32,6 +34,8 @@ class EvalSettings:
     seed: int = 0  # evaluation seed = EVAL_SEED_OFFSET + seed
     dynamics: str = "kinematic"
     camera_noise: bool = False
+    noise_model: StereoNoise = field(default_factory=StereoNoise)  # the camera's errors when camera_noise is on
+    camera: str | None = None  # camera preset (companion.spec.CAMERA_PRESETS); None: the policy's own, or paper
     max_episode_steps: int = DEFAULT_TASK_SPEC.max_episode_steps
     batch_worlds: int = 100  # episodes flown at once (parallel worlds)
     record_paths: bool = True
@@ -42,7 +46,14 @@ class EvalSettings:
 
     def describe(self) -> str:
         s = self.scenario
-        where = f"circle r={s.circle_radius_m:g} m" if s.name == "circle" else f"random {density_label(s.density)}"
+        if s.name == "circle":
+            radius = "{:g}-{:g}".format(*s.circle_radius_range_m) if s.circle_radius_range_m else f"{s.circle_radius_m:g}"
+            alt = "{:g}-{:g}".format(*s.circle_alt_range_m) if s.circle_alt_range_m else f"{s.circle_alt_m:g}"
+            where = f"circle r={radius} m at {alt} m"
+        else:
+            where = f"{s.name} {density_label(s.density)}"
+            if s.altitude_range_m:
+                where += " at {:g}-{:g} m".format(*s.altitude_range_m)
         return f"{where}, N={self.num_uavs}, {self.episodes} episodes, {self.dynamics}"
 
 
@@ -57,13 +68,24 @@ def density_label(density: float) -> str:
 def sim_config_for(method: Method, settings: EvalSettings, num_worlds: int) -> SimConfig:
     """The simulator configuration for ``method``: its camera and control period when it is a policy."""
     extra = {}
+    sensor = CAMERA_PRESETS[settings.camera] if settings.camera else None
     if method.camera is not None:
+        # The simulated camera is the policy's: what the companion cuts from the sensor's wider image.
+        problem = fits_camera(method.camera, sensor) if sensor is not None else None
+        if problem:
+            raise EvaluationError(f"{method.label}: {problem}")
         extra["camera"] = method.camera
+    elif sensor is not None:
+        extra["camera"] = sensor
+    min_range_m = extra["camera"].min_range_m if "camera" in extra else 0.0
     if method.control_period_s is not None:
         extra["control_period_s"] = method.control_period_s
     return SimConfig(num_uavs=settings.num_uavs, num_worlds=num_worlds, scenario=settings.scenario,
                      dynamics=settings.dynamics, max_episode_steps=settings.max_episode_steps,
-                     camera_noise=StereoNoise() if settings.camera_noise else None,
+                     # the noise model's "too near" cut is the simulated camera's (0 for the paper camera)
+                     camera_noise=dataclasses.replace(settings.noise_model, min_range_m=max(
+                         min_range_m, sensor.min_range_m if sensor else 0.0))
+                     if settings.camera_noise else None,
                      record_paths=settings.record_paths, **extra)
 
 

@@ -119,3 +119,40 @@ def plot_scaling(results: dict[str, dict[int, dict]], path: str | Path, title: s
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
+
+
+def plot_protocol(results: dict[str, dict[str, dict]], path: str | Path, title: str) -> Path:
+    """A protocol's success per cell, one bar per method (left), and the first method's success by goal
+    altitude per cell (right). ``results[cell][method]`` holds ``summary`` and ``by_goal_altitude``
+    (:func:`sitl.sim.metrics.success_by_goal_altitude`); empty altitude bins are left out."""
+    plt = _pyplot()
+    path = Path(path)
+    cells = list(results)
+    methods = list(dict.fromkeys(m for c in cells for m in results[c]))
+    fig, (ax_c, ax_a) = plt.subplots(1, 2, figsize=(13, 4.8))
+    width = 0.8 / max(1, len(methods))
+    x = np.arange(len(cells))
+    for k, method in enumerate(methods):
+        rates = [results[c].get(method, {}).get("summary", {}).get("success_rate", np.nan) for c in cells]
+        ax_c.bar(x + (k - (len(methods) - 1) / 2) * width, [np.nan if r is None else r for r in rates], width,
+                 label=method, color=f"C{k % 10}")
+    first = methods[0] if methods else None
+    bins = list(results[cells[0]][first]["by_goal_altitude"]) if cells and first else []
+    width_a = 0.8 / max(1, len(bins))
+    for k, label in enumerate(bins):
+        rates = []
+        for c in cells:
+            rate = results[c][first]["by_goal_altitude"][label]["success_rate"]
+            rates.append(np.nan if rate is None else rate)
+        ax_a.bar(x + (k - (len(bins) - 1) / 2) * width_a, rates, width_a, label=f"goal {label}", color=f"C{(k + 3) % 10}")
+    for ax, sub in ((ax_c, "success rate"), (ax_a, f"success by goal altitude ({first})")):
+        ax.set_xticks(x, cells, rotation=25, ha="right")
+        ax.set(ylabel="success rate", ylim=(0, 1.05), title=sub)
+        ax.grid(alpha=0.3, axis="y")
+        ax.legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

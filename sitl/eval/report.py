@@ -16,6 +16,8 @@ def collision_rate(summary: dict) -> float:
 
 _TABLE_HEAD = ("success (± 95% CI)", "collision: all / UAV / ground / timeout", "SPL", "extra distance (m)",
                "average speed (m/s)")
+_TABLE_HEAD_OBSTACLES = ("success (± 95% CI)", "collision: all / UAV / ground / obstacle / timeout", "SPL",
+                         "extra distance (m)", "average speed (m/s)")
 
 
 def _num(value, digits: int) -> str:
@@ -25,7 +27,7 @@ def _num(value, digits: int) -> str:
     return f"{value:.{digits}f}"
 
 
-def _metric_cells(summary: dict | None, note: str = "not trained") -> list[str]:
+def _metric_cells(summary: dict | None, note: str = "not trained", obstacles: bool = False) -> list[str]:
     if summary is None:
         return [note] + ["-"] * (len(_TABLE_HEAD) - 1)
     ed, sp = summary["extra_distance_m"], summary["average_speed_m_s"]
@@ -40,7 +42,9 @@ def _metric_cells(summary: dict | None, note: str = "not trained") -> list[str]:
     return [
         success,
         f"{_num(collision_rate(summary), 3)} / {_num(summary['collision_uav_rate'], 3)} / "
-        f"{_num(summary['collision_ground_rate'], 3)} / {_num(summary['timeout_rate'], 3)}",
+        f"{_num(summary['collision_ground_rate'], 3)} / "
+        + (f"{_num(summary.get('collision_obstacle_rate'), 3)} / " if obstacles else "")
+        + f"{_num(summary['timeout_rate'], 3)}",
         _num(summary["spl"], 3),
         mean_std(ed),
         mean_std(sp),
@@ -53,10 +57,12 @@ def markdown_table(key_names: list[str], rows: list[tuple[list[str], dict | None
     Columns: the key columns, success rate, collision rate (1 - success) with its split,
     SPL, extra distance and average speed as mean ± std over UAVs and episodes.
     """
-    head = list(key_names) + list(_TABLE_HEAD)
+    # The obstacle column appears once a summary has obstacle collisions (the paper's scenes have none).
+    obstacles = any(s is not None and s.get("collision_obstacle_rate") for _, s in rows)
+    head = list(key_names) + list(_TABLE_HEAD_OBSTACLES if obstacles else _TABLE_HEAD)
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for keys, summary in rows:
-        lines.append("| " + " | ".join(list(keys) + _metric_cells(summary)) + " |")
+        lines.append("| " + " | ".join(list(keys) + _metric_cells(summary, obstacles=obstacles)) + " |")
     return "\n".join(lines)
 
 

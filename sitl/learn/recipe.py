@@ -148,6 +148,7 @@ class Recipe:
                  f"({cfg.total_updates} updates{', resumed' if resume else ''}; {self._eta(index)})")
         started = time.perf_counter()
         trainer = make_trainer(cfg, agent_cfg, sdir, resume=resume)
+        trainer.name_stage(f"stage {index + 1}/{len(self.stages)} '{stage.name}'")
         trainer.run()
         best = select_snapshot(_validation_rows(sdir))
         record = {"name": stage.name, "description": stage.description, "run_dir": sdir.name,

@@ -27,6 +27,7 @@ from sitl.learn.agent import AgentConfig, SacAeAgent
 from sitl.learn.buffer import FrameReplayBuffer
 from sitl.learn.config import TrainConfig, evaluation_scenarios, make_sim_config
 from sitl.learn.export import export_policy
+from sitl.learn.progress import Progress
 from sitl.sim.config import SimConfig
 from sitl.sim.env import SwarmEnv
 from sitl.sim.episodes import ActorFactory, depth_state_actor, run_episodes
@@ -55,7 +56,11 @@ def agent_actor(agent: SacAeAgent) -> ActorFactory:
 
 
 def plot_learning_curve(history: dict, path: Path, title: str) -> None:
-    """Paper Fig. 4 style: average episode reward (and success rate) against episodes."""
+    """Paper Fig. 4 style: average episode reward (and success rate) against episodes.
+
+    Where the history holds several stages (``history["stages"]``: runs started with
+    ``--init-from``), a dashed line marks where each began, with its name.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -77,7 +82,15 @@ def plot_learning_curve(history: dict, path: Path, title: str) -> None:
     if history.get("eval_episode"):
         ax_s.plot(history["eval_episode"], history["eval_success"], "o-", color="tab:blue", label="evaluation")
         ax_s.legend()
-    ax_s.set_xlabel("episode")
+    stages = history.get("stages") or []
+    for stage in stages[1:] if len(stages) > 1 else []:
+        for ax in (ax_r, ax_s):
+            ax.axvline(stage["episode"], color="grey", ls="--", lw=1)
+    if len(stages) > 1:
+        for stage in stages:
+            ax_r.annotate(stage["name"], (stage["episode"], 1.0), xycoords=("data", "axes fraction"),
+                          xytext=(3, -3), textcoords="offset points", va="top", fontsize=8, color="dimgrey")
+    ax_s.set_xlabel("episode" + (" (all stages)" if len(stages) > 1 else ""))
     ax_r.set_title(title)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
@@ -124,6 +137,24 @@ def select_snapshot(rows: list[dict]) -> dict:
     """The best row of ``validation.json``; rescored rows (``sitl.rescore``) compete only among themselves."""
     rescored = [row for row in rows if "rescored" in row]
     return max(rescored or rows, key=lambda row: (snapshot_score(row), row["updates"]))
+
+
+def earlier_history(path: Path, episodes: int) -> dict:
+    """The learning curve of the run a stage starts from (``--init-from``), up to its first ``episodes``.
+
+    Empty when that run has no readable checkpoint history (then the curve starts with this stage).
+    """
+    run_dir = path.parent if path.name == "checkpoint.pt" else path.parent.parent
+    try:
+        history = torch.load(run_dir / "checkpoint.pt", weights_only=False)["history"]
+    except Exception:  # noqa: BLE001 - the curve is a convenience; training goes on without it
+        return {}
+    keep = sum(1 for e in history.get("episode", []) if e <= episodes)
+    keep_eval = sum(1 for e in history.get("eval_episode", []) if e <= episodes)
+    out = {k: list(history.get(k, []))[:keep] for k in ("episode", "return", "success")}
+    out |= {k: list(history.get(k, []))[:keep_eval] for k in ("eval_episode", "eval_success", "eval_spl")}
+    out["stages"] = [s for s in history.get("stages", []) if s["episode"] <= episodes]
+    return out
 
 
 def _atomic_save(obj, path: Path) -> None:
@@ -191,8 +222,10 @@ class Trainer:
         self.sim_config = env.config
         self.counters = {"env_steps": 0, "transitions": 0, "episodes": 0, "updates": 0, "wall_s": 0.0,
                          "update_credit": 0.0}
+        #: The learning curve; its episode axis counts the episodes of earlier stages too, and
+        #: ``stages`` lists where each stage began (``name``, ``episode``, ``updates``).
         self.history: dict[str, list] = {"episode": [], "return": [], "success": [], "eval_episode": [],
-                                         "eval_success": [], "eval_spl": []}
+                                         "eval_success": [], "eval_spl": [], "stages": []}
         from torch.utils.tensorboard import SummaryWriter
 
         self.writer = SummaryWriter(str(run_dir / "tb"))
@@ -207,6 +240,10 @@ class Trainer:
             self._restore(ckpt)
         elif cfg.init_from:
             self._init_from(Path(cfg.init_from))
+        if not resume:
+            self.history.setdefault("stages", []).append(
+                {"name": self._stage_name(), "episode": self.initial_stage.get("episodes", 0),
+                 "updates": self.initial_stage.get("updates", 0)})
 
     @staticmethod
     def log(message: str) -> None:
@@ -220,6 +257,8 @@ class Trainer:
             "torch_rng": torch.get_rng_state(), "initial_stage": self.initial_stage,
         }, self.run_dir / "checkpoint.pt")
         plot_learning_curve(self.history, self.run_dir / "learning_curve.png", self._title())
+        # The curve's numbers beside its picture (python -m sitl.sweep reads the last validation from it).
+        (self.run_dir / "learning_curve.json").write_text(json.dumps(self.history))
 
     def _restore(self, ckpt: dict) -> None:
         self.agent.restore(ckpt["agent"])
@@ -266,12 +305,36 @@ class Trainer:
         self.agent.apply_learning_rates()
         self.initial_stage = snapshot_counters(path) if is_snapshot else \
             add_counters(ckpt["counters"], ckpt.get("initial_stage", {}))  # that run may itself be a later stage
+        # The curve goes on from the earlier stages' (theirs up to the networks taken from them).
+        earlier = earlier_history(path, self.initial_stage["episodes"])
+        if not earlier.get("stages"):  # that run kept no stage marks: it was one stage
+            earlier["stages"] = [{"name": f"stage 1: {path.parent.name if path.name == 'checkpoint.pt' else path.name}",
+                                  "episode": 0, "updates": 0}]
+        self.history |= earlier
         self.log(f"initialised from {path}: {self.initial_stage['updates']} updates, "
                  f"{self.initial_stage['wall_s'] / 60:.1f} min of training")
 
     def _title(self) -> str:
         c = self.cfg
         return f"{c.method}, {c.scenario} {c.density}, N={c.num_uavs}"
+
+    def _stage_name(self) -> str:
+        """``stage 2: mixed medium`` (a run with earlier stages) or ``random medium``."""
+        c = self.cfg
+        number = len(self.history.get("stages", [])) + 1
+        what = f"{c.scenario} {c.density}" + (f", lr {self.agent_cfg.actor_lr:g}" if number > 1 else "")
+        return f"stage {number}: {what}" if number > 1 else what
+
+    def name_stage(self, name: str) -> None:
+        """Call this run's stage ``name`` on the curve and in the progress display (e.g. a recipe's
+        ``stage 2/3 'circles'``) instead of the name made from its scenario."""
+        if self.history.get("stages"):
+            self.history["stages"][-1]["name"] = name
+
+    def stage_label(self) -> str:
+        """What the progress display calls this run: its directory and stage (``s0 | stage 2: ...``)."""
+        stages = self.history.get("stages") or [{"name": self._title()}]
+        return f"{self.run_dir.name} | {stages[-1]['name']}"
 
     # -------------------------------------------------------------- helpers
     def finished(self) -> bool:
@@ -290,7 +353,7 @@ class Trainer:
         summaries = self.evaluate(cfg.eval_episodes, VALIDATION_SEED_OFFSET)
         if cfg.select_best:
             self._keep_snapshot(summaries)
-        self.history["eval_episode"].append(k["episodes"])
+        self.history["eval_episode"].append(self._episode_offset() + k["episodes"])
         # The curve shows the mean over the evaluation scenarios; TensorBoard each one.
         self.history["eval_success"].append(float(np.mean([s["success_rate"] for s in summaries.values()])))
         self.history["eval_spl"].append(float(np.mean([s["spl"] for s in summaries.values()])))
@@ -300,6 +363,10 @@ class Trainer:
             self.writer.add_scalar(f"eval/spl{suffix}", summary["spl"], k["updates"])
             write(f"validation @ {k['updates']} updates ({k['episodes']} training episodes), {name} "
                   f"({cfg.eval_episodes} episodes): success {summary['success_rate']:.3f}, SPL {summary['spl']:.3f}")
+
+    def _episode_offset(self) -> int:
+        """Episodes of the earlier stages: the curve's episode axis runs on across stages."""
+        return self.initial_stage.get("episodes", 0)
 
     def _validated_updates(self) -> set[int]:
         index_path = self.run_dir / "snapshots" / "validation.json"
@@ -334,8 +401,6 @@ class Trainer:
 
     # -------------------------------------------------------------- main loop
     def run(self) -> Path:
-        from tqdm import tqdm
-
         cfg, env, agent, buffer, k = self.cfg, self.env, self.agent, self.buffer, self.counters
         obs = env.reset()
         everyone = np.arange(env.num_agents)
@@ -345,8 +410,10 @@ class Trainer:
         rng = np.random.default_rng(cfg.seed + k["env_steps"])
         total = cfg.total_updates if cfg.total_updates > 0 else cfg.max_episodes
         unit = "update" if cfg.total_updates > 0 else "episode"
-        bar = tqdm(total=total, initial=k["updates"] if unit == "update" else k["episodes"], unit=unit,
-                   desc=self._title(), file=sys.stderr, dynamic_ncols=True, mininterval=2.0)
+        # A bar on a terminal, a plain line a minute elsewhere (CI logs, Ray workers): see sitl.learn.progress.
+        bar = Progress(total, k["updates"] if unit == "update" else k["episodes"], unit, self.stage_label())
+        if self.history["eval_success"]:
+            bar.set_fields(val=f"{self.history['eval_success'][-1]:.2f}")
         started = self._started = time.perf_counter() - k["wall_s"]
         last_ckpt = time.perf_counter()
         next_eval = (k["updates"] // cfg.eval_every_updates + 1) * cfg.eval_every_updates if cfg.eval_every_updates else math.inf
@@ -379,7 +446,7 @@ class Trainer:
                     records = [r for r in env.completed if r.episode == episode_ids[b]]
                     success = float(np.mean([r.success for r in records])) if records else 0.0
                     k["episodes"] += 1
-                    self.history["episode"].append(k["episodes"])
+                    self.history["episode"].append(self._episode_offset() + k["episodes"])
                     self.history["return"].append(float(returns[world_rows].mean()))
                     self.history["success"].append(success)
                     self.writer.add_scalar("charts/episode_reward", returns[world_rows].mean(), k["episodes"])
@@ -415,12 +482,14 @@ class Trainer:
                 env_rate, upd_rate = window_steps / (now - window_t), window_updates / (now - window_t)
                 self.writer.add_scalar("charts/transitions_per_s", env_rate, k["updates"])
                 self.writer.add_scalar("charts/updates_per_s", upd_rate, k["updates"])
-                bar.set_postfix(ep=k["episodes"], succ=f"{np.mean(self.history['success'][-20:] or [0]):.2f}",
-                                sps=f"{env_rate:.0f}", ups=f"{upd_rate:.2f}")
+                bar.set_fields(ep=k["episodes"], succ=f"{np.mean(self.history['success'][-20:] or [0]):.2f}",
+                               sps=f"{env_rate:.0f}", ups=f"{upd_rate:.2f}")
                 window_t, window_steps, window_updates = now, 0, 0
             if k["updates"] >= next_eval:
                 self.validate(write=bar.write)
+                bar.set_fields(val=f"{self.history['eval_success'][-1]:.2f}")
                 next_eval += cfg.eval_every_updates
+            bar.tick()
             if now - last_ckpt > cfg.checkpoint_every_s:
                 k["wall_s"] = time.perf_counter() - started
                 self.save_checkpoint()
@@ -455,6 +524,9 @@ class Trainer:
             "episodes": k["episodes"] + before.get("episodes", 0),
             "wall_time_s": round(k["wall_s"] + before.get("wall_s", 0.0), 1),
             "seed": cfg.seed, "device": cfg.device, "threads": cfg.threads,
+            # The camera conditions it was trained in (policy.json's depth has the geometry).
+            "camera": cfg.camera, "camera_noise": cfg.camera_noise,
+            "mount_pitch_jitter_deg": cfg.mount_pitch_jitter_deg, "avoid_counts_ground": cfg.avoid_counts_ground,
         }
         if selected is not None:
             provenance["selected_snapshot"] = selected  # trained for wall_time_s; these networks are from here

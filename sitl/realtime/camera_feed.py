@@ -13,12 +13,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.spec import DEFAULT_CAMERA_SPEC, CameraSpec
+from companion.spec import DEFAULT_CAMERA_SPEC, SENSOR_PRESETS, CameraSpec
 from sitl.sim.camera import LANDED_CAMERA_HEIGHT_M, DepthCamera
 from sitl.cli_args import (
     MAX_CAMERA_HZ,
     MAX_SUPERSAMPLE,
     box,
+    camera_preset,
     check_camera,
     cylinder,
     cylinder_rows,
@@ -59,15 +60,19 @@ def add_camera_arguments(parser: argparse.ArgumentParser, frame: str = "") -> No
     ``frame`` names the obstacles' frame in the help (``"world"`` for the depth bridge).
     """
     spec = DEFAULT_CAMERA_SPEC
+    parser.add_argument("--camera", type=camera_preset, default="paper",
+                        help="the depth sensor each vehicle carries: paper (the policy's 32x32, 90 deg) or realsense_d435 "
+                             "(160x90 at 90 x 58.7 deg, 0.2-10 m, what the companion crops to an 87 x 58 deg policy); "
+                             "--camera-size, --hfov and --max-range override its values (default paper)")
     parser.add_argument("--camera-hz", type=float_range(0.0, MAX_CAMERA_HZ, low_open=True), default=DEFAULT_CAMERA_HZ,
                         help=f"depth frame rate, up to {MAX_CAMERA_HZ:g} (default {DEFAULT_CAMERA_HZ:g}; use a multiple "
                              "of the policy's control rate)")
-    parser.add_argument("--camera-size", type=image_size, default=(spec.width, spec.height), metavar="WxH",
-                        help=f"rendered resolution (default {spec.width}x{spec.height})")
-    parser.add_argument("--hfov", type=finite_float, default=spec.hfov_deg,
-                        help=f"horizontal field of view in degrees (default {spec.hfov_deg:g})")
-    parser.add_argument("--max-range", type=positive_float, default=spec.max_range_m,
-                        help=f"camera range in metres (default {spec.max_range_m:g})")
+    parser.add_argument("--camera-size", type=image_size, default=None, metavar="WxH",
+                        help=f"rendered resolution (default the --camera's, {spec.width}x{spec.height} for paper)")
+    parser.add_argument("--hfov", type=finite_float, default=None,
+                        help=f"horizontal field of view in degrees (default the --camera's, {spec.hfov_deg:g} for paper)")
+    parser.add_argument("--max-range", type=positive_float, default=None,
+                        help=f"camera range in metres (default the --camera's, {spec.max_range_m:g} for paper)")
     parser.add_argument("--supersample", type=int_range(1, MAX_SUPERSAMPLE), default=DEFAULT_SUPERSAMPLE,
                         help=f"sub-rays per pixel side, 1..{MAX_SUPERSAMPLE} (default {DEFAULT_SUPERSAMPLE})")
     where = f" ({frame} frame)" if frame else ""
@@ -81,6 +86,13 @@ def add_camera_arguments(parser: argparse.ArgumentParser, frame: str = "") -> No
 def check_camera_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """Exit 2 unless the camera options make a valid camera; ``args.cylinder`` becomes camera rows."""
     args.cylinder = cylinder_rows(args.cylinder)
+    sensor = SENSOR_PRESETS[args.camera]
+    if args.camera_size is None:
+        args.camera_size = (sensor.width, sensor.height)
+    if args.hfov is None:
+        args.hfov = sensor.hfov_deg
+    if args.max_range is None:
+        args.max_range = sensor.max_range_m
     check_camera(parser, args)
 
 
@@ -88,7 +100,8 @@ def camera_config(args: argparse.Namespace) -> CameraConfig:
     """The :class:`CameraConfig` of parsed (and checked) camera options."""
     return CameraConfig(
         spec=CameraSpec(width=args.camera_size[0], height=args.camera_size[1], hfov_deg=args.hfov,
-                        max_range_m=args.max_range),
+                        max_range_m=args.max_range,
+                        min_range_m=min(SENSOR_PRESETS[args.camera].min_range_m, args.max_range / 2)),
         hz=args.camera_hz, supersample=args.supersample,
         cylinders=tuple(tuple(row) for row in args.cylinder or ()), boxes=tuple(tuple(row) for row in args.box or ()))
 

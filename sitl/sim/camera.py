@@ -1,6 +1,7 @@
 """Raycast depth camera: planar depth of other UAVs, the ground and static obstacles.
 
-Every UAV carries a forward-looking, level pinhole camera at its centre (see
+Every UAV carries a forward-looking pinhole camera at its centre, level or pitched by its
+mount (``CameraSpec.mount_pitch_deg``, or per camera; see
 :mod:`companion.frames` for the frames and :class:`companion.spec.CameraSpec` for the
 image layout). One call renders the cameras of all UAVs of all worlds.
 
@@ -96,8 +97,24 @@ class DepthCamera:
         boxes: np.ndarray | None = None,
         cylinders: np.ndarray | None = None,
         out: np.ndarray | None = None,
+        pitch_rad: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Render all cameras.
+        """Render all cameras: planar depth, float32 [B*N, H, W] (see :meth:`render_with_objects`)."""
+        return self.render_with_objects(pos_ned, yaw_rad, uavs_per_world, visible, boxes, cylinders, out,
+                                        pitch_rad)[0]
+
+    def render_with_objects(
+        self,
+        pos_ned: np.ndarray,
+        yaw_rad: np.ndarray,
+        uavs_per_world: int,
+        visible: np.ndarray | None = None,
+        boxes: np.ndarray | None = None,
+        cylinders: np.ndarray | None = None,
+        out: np.ndarray | None = None,
+        pitch_rad: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Render all cameras, and the nearest non-ground surface each one sees.
 
         Args:
             pos_ned: [B*N, 3] UAV (and camera) positions, world-major (world b holds
@@ -108,9 +125,15 @@ class DepthCamera:
             boxes: [B, K, 6] static boxes per world (see module doc), or None.
             cylinders: [B, K, 5] static cylinders per world, or None.
             out: optional float32 [B*N, H, W] to write into.
+            pitch_rad: [B*N] camera mount pitch (rad, positive up), default the spec's
+                ``mount_pitch_deg`` for every camera.
 
         Returns:
-            float32 [B*N, H, W] planar depth in metres.
+            ``(depth, nearest_object_m)``: float32 [B*N, H, W] planar depth in metres, pixels
+            with nothing within ``max_range_m`` reading ``max_range_m`` (a perfect camera); and
+            float64 [B*N] the smallest planar depth of any other UAV, box or cylinder inside
+            the field of view (over every sub-ray, so a UAV smaller than a pixel counts),
+            ``max_range_m`` when none is — eq. 4's d_min without the ground.
         """
         pos_ned = np.ascontiguousarray(pos_ned, dtype=np.float64)
         yaw_rad = np.ascontiguousarray(yaw_rad, dtype=np.float64)
@@ -123,16 +146,21 @@ class DepthCamera:
         cylinders = empty_cylinders(num_worlds) if cylinders is None else np.ascontiguousarray(cylinders, dtype=np.float64)
         if boxes.shape[0] != num_worlds or cylinders.shape[0] != num_worlds:
             raise ValueError("boxes and cylinders need one (possibly empty) row per world")
+        if pitch_rad is None:
+            pitch_rad = np.full(total, self.spec.mount_pitch_rad)
+        else:
+            pitch_rad = np.ascontiguousarray(np.broadcast_to(np.asarray(pitch_rad, dtype=np.float64), (total,)))
         if out is None:
             out = np.empty((total, self.spec.height, self.spec.width), dtype=np.float32)
+        nearest_object_m = np.empty(total, dtype=np.float64)
         self._kernel(
-            pos_ned, yaw_rad, visible, uavs_per_world,
+            pos_ned, yaw_rad, pitch_rad, visible, uavs_per_world,
             self.geometry.body_radius_m, self.geometry.body_half_height_m,
             boxes, cylinders, self.u_sub, self.v_sub,
             self.spec.tan_half_hfov, self.spec.tan_half_vfov, self.supersample,
-            self.spec.max_range_m, out,
+            self.spec.max_range_m, out, nearest_object_m,
         )
-        return out
+        return out, nearest_object_m
 
 
 # --------------------------------------------------------------------------- kernel
@@ -150,8 +178,8 @@ def _sub_range(lo: float, hi: float, first: float, step: float, count: int) -> t
 
 
 @numba.njit(cache=True)
-def _project_box_bounds(cn, ce, cd, hn, he, hd, px, py, pz, cos_y, sin_y, tu, tv, max_range):
-    """Image-plane bounds (umin, umax, vmin, vmax) of an AABB, or flags for cull/full image.
+def _project_box_bounds(cn, ce, cd, hn, he, hd, px, py, pz, cos_y, sin_y, cp, sp, tu, tv, max_range):
+    """Image-plane bounds (umin, umax, vmin, vmax) of an AABB seen by a camera pitched (cp, sp), or cull/full flags.
 
     Returns (status, umin, umax, vmin, vmax) with status 0 = culled, 1 = bounded, 2 = full.
     """
@@ -167,8 +195,10 @@ def _project_box_bounds(cn, ce, cd, hn, he, hd, px, py, pz, cos_y, sin_y, tu, tv
                 dn = cn + sx * hn - px
                 de = ce + sy * he - py
                 dd = cd + sz * hd - pz
-                f = cos_y * dn + sin_y * de
+                fh = cos_y * dn + sin_y * de
                 r = -sin_y * dn + cos_y * de
+                f = cp * fh - sp * dd  # camera axes
+                dd = sp * fh + cp * dd
                 fmin = min(fmin, f)
                 fmax = max(fmax, f)
                 if f > _EPS_FWD:
@@ -184,12 +214,18 @@ def _project_box_bounds(cn, ce, cd, hn, he, hd, px, py, pz, cos_y, sin_y, tu, tv
 
 
 @numba.njit(cache=True)
-def _render_one(m, pos, yaw, visible, n_per_world, a_h, a_v, boxes, cyls, u_sub, v_sub, tu, tv, s, max_range, out):
+def _render_one(m, pos, yaw, pitch, visible, n_per_world, a_h, a_v, boxes, cyls, u_sub, v_sub, tu, tv, s, max_range,
+                out, nearest_obj):
     H = out.shape[1]
     W = out.shape[2]
     px, py, pz = pos[m, 0], pos[m, 1], pos[m, 2]
     cos_y = math.cos(yaw[m])
     sin_y = math.sin(yaw[m])
+    # Camera pitched up by p: a ray (1, u, v) in camera axes is (cp + v sp, u, v cp - sp) in the
+    # heading frame (forward, right, down). Its parameter t stays the planar depth.
+    cp = math.cos(pitch[m])
+    sp = math.sin(pitch[m])
+    obj_min = max_range  # nearest non-ground surface hit by any sub-ray (the reward's d_min)
     n_sub_u = u_sub.shape[0]
     n_sub_v = v_sub.shape[0]
     du = 2.0 * tu / n_sub_u  # sub-ray spacing on the image plane
@@ -197,8 +233,9 @@ def _render_one(m, pos, yaw, visible, n_per_world, a_h, a_v, boxes, cyls, u_sub,
 
     # Ground: planar depth along a ray (1, u, v) is -pz / v, independent of u, and smallest
     # for the lowest sub-ray of a pixel row — so the min-pooled value is exact per row.
+    # With pitch the ray's down component v cp - sp still grows with v only, so the same holds.
     for i in range(H):
-        v_low = v_sub[i * s + s - 1]
+        v_low = v_sub[i * s + s - 1] * cp - sp
         if pz >= 0.0:
             g = 0.0
         elif v_low > 0.0:
@@ -219,27 +256,30 @@ def _render_one(m, pos, yaw, visible, n_per_world, a_h, a_v, boxes, cyls, u_sub,
         dd = pos[k, 2] - pz
         f = cos_y * dn + sin_y * de
         r = -sin_y * dn + cos_y * de
+        fc = cp * f - sp * dd  # the bounding sphere's centre in camera axes
+        dc = sp * f + cp * dd
         a = a_h  # bounding-sphere radius (a_h >= a_v for an oblate body)
-        if f + a <= 0.0 or f - a > max_range:
+        if fc + a <= 0.0 or fc - a > max_range:
             continue
-        if f - a <= _EPS_FWD:
+        if fc - a <= _EPS_FWD:
             umin, umax, vmin, vmax = -tu, tu, -tv, tv
         else:
-            umin = min((r - a) / (f - a), (r - a) / (f + a))
-            umax = max((r + a) / (f - a), (r + a) / (f + a))
-            vmin = min((dd - a) / (f - a), (dd - a) / (f + a))
-            vmax = max((dd + a) / (f - a), (dd + a) / (f + a))
+            umin = min((r - a) / (fc - a), (r - a) / (fc + a))
+            umax = max((r + a) / (fc - a), (r + a) / (fc + a))
+            vmin = min((dc - a) / (fc - a), (dc - a) / (fc + a))
+            vmax = max((dc + a) / (fc - a), (dc + a) / (fc + a))
         c0, c1 = _sub_range(umin, umax, u_sub[0], du, n_sub_u)
         r0, r1 = _sub_range(vmin, vmax, v_sub[0], dv, n_sub_v)
         cz = dd * k_scale
         c_sq = f * f + r * r + cz * cz - a * a
         for ri in range(r0, r1 + 1):
             v = v_sub[ri]
-            vk = v * k_scale
+            wf = cp + v * sp
+            vk = (v * cp - sp) * k_scale
             for ci in range(c0, c1 + 1):
                 u = u_sub[ci]
-                A = 1.0 + u * u + vk * vk
-                b = f + u * r + vk * cz
+                A = wf * wf + u * u + vk * vk
+                b = f * wf + u * r + vk * cz
                 if c_sq <= 0.0:
                     t = 0.0
                 else:
@@ -253,6 +293,8 @@ def _render_one(m, pos, yaw, visible, n_per_world, a_h, a_v, boxes, cyls, u_sub,
                 oj = ci // s
                 if t < out[m, oi, oj]:
                     out[m, oi, oj] = t
+                if t < obj_min:
+                    obj_min = t
 
     w = m // n_per_world
     # Boxes: slab test in NED along the ray direction (cos - sin u, sin + cos u, v).
@@ -260,7 +302,8 @@ def _render_one(m, pos, yaw, visible, n_per_world, a_h, a_v, boxes, cyls, u_sub,
         cn, ce, cd, hn, he, hd = boxes[w, q, 0], boxes[w, q, 1], boxes[w, q, 2], boxes[w, q, 3], boxes[w, q, 4], boxes[w, q, 5]
         if hn <= 0.0 or he <= 0.0 or hd <= 0.0:
             continue  # padding row
-        status, umin, umax, vmin, vmax = _project_box_bounds(cn, ce, cd, hn, he, hd, px, py, pz, cos_y, sin_y, tu, tv, max_range)
+        status, umin, umax, vmin, vmax = _project_box_bounds(cn, ce, cd, hn, he, hd, px, py, pz, cos_y, sin_y, cp, sp,
+                                                             tu, tv, max_range)
         if status == 0:
             continue
         c0, c1 = _sub_range(umin, umax, u_sub[0], du, n_sub_u)
@@ -271,23 +314,25 @@ def _render_one(m, pos, yaw, visible, n_per_world, a_h, a_v, boxes, cyls, u_sub,
         inside = lo_n < 0.0 < hi_n and lo_e < 0.0 < hi_e and lo_d < 0.0 < hi_d
         for ri in range(r0, r1 + 1):
             v = v_sub[ri]
+            wf = cp + v * sp
+            wd = v * cp - sp
             for ci in range(c0, c1 + 1):
                 u = u_sub[ci]
                 if inside:
                     t = 0.0
                 else:
-                    wn = cos_y - sin_y * u
-                    we = sin_y + cos_y * u
+                    wn = cos_y * wf - sin_y * u
+                    we = sin_y * wf + cos_y * u
                     t_near = 0.0
                     t_far = 1e30
                     hit = True
-                    for lo, hi, wd in ((lo_n, hi_n, wn), (lo_e, hi_e, we), (lo_d, hi_d, v)):
-                        if abs(wd) < 1e-12:
+                    for lo, hi, w_ax in ((lo_n, hi_n, wn), (lo_e, hi_e, we), (lo_d, hi_d, wd)):
+                        if abs(w_ax) < 1e-12:
                             if lo > 0.0 or hi < 0.0:
                                 hit = False
                         else:
-                            t1 = lo / wd
-                            t2 = hi / wd
+                            t1 = lo / w_ax
+                            t2 = hi / w_ax
                             if t1 > t2:
                                 t1, t2 = t2, t1
                             t_near = max(t_near, t1)
@@ -299,6 +344,8 @@ def _render_one(m, pos, yaw, visible, n_per_world, a_h, a_v, boxes, cyls, u_sub,
                 oj = ci // s
                 if t < out[m, oi, oj]:
                     out[m, oi, oj] = t
+                if t < obj_min:
+                    obj_min = t
 
     # Vertical cylinders: side surface plus the two caps.
     for q in range(cyls.shape[1]):
@@ -306,7 +353,8 @@ def _render_one(m, pos, yaw, visible, n_per_world, a_h, a_v, boxes, cyls, u_sub,
         if rad <= 0.0 or z_bot <= z_top:
             continue  # padding row
         hd = 0.5 * (z_bot - z_top)
-        status, umin, umax, vmin, vmax = _project_box_bounds(cn, ce, z_top + hd, rad, rad, hd, px, py, pz, cos_y, sin_y, tu, tv, max_range)
+        status, umin, umax, vmin, vmax = _project_box_bounds(cn, ce, z_top + hd, rad, rad, hd, px, py, pz, cos_y, sin_y,
+                                                             cp, sp, tu, tv, max_range)
         if status == 0:
             continue
         c0, c1 = _sub_range(umin, umax, u_sub[0], du, n_sub_u)
@@ -316,13 +364,15 @@ def _render_one(m, pos, yaw, visible, n_per_world, a_h, a_v, boxes, cyls, u_sub,
         inside = radial_sq < 0.0 and z_top < pz < z_bot
         for ri in range(r0, r1 + 1):
             v = v_sub[ri]
+            wf = cp + v * sp
+            wd = v * cp - sp
             for ci in range(c0, c1 + 1):
                 u = u_sub[ci]
                 if inside:
                     t = 0.0
                 else:
-                    wn = cos_y - sin_y * u
-                    we = sin_y + cos_y * u
+                    wn = cos_y * wf - sin_y * u
+                    we = sin_y * wf + cos_y * u
                     t = 1e30
                     A = wn * wn + we * we
                     b = on * wn + oe * we
@@ -330,12 +380,12 @@ def _render_one(m, pos, yaw, visible, n_per_world, a_h, a_v, boxes, cyls, u_sub,
                     if disc >= 0.0 and radial_sq > 0.0:
                         ts = (-b - math.sqrt(disc)) / A
                         if ts > 0.0:
-                            zs = pz + ts * v
+                            zs = pz + ts * wd
                             if z_top <= zs <= z_bot:
                                 t = ts
-                    if abs(v) > 1e-12:
+                    if abs(wd) > 1e-12:
                         for zc in (z_top, z_bot):
-                            tc = (zc - pz) / v
+                            tc = (zc - pz) / wd
                             if 0.0 < tc < t:
                                 hn_ = on + tc * wn
                                 he_ = oe + tc * we
@@ -347,40 +397,102 @@ def _render_one(m, pos, yaw, visible, n_per_world, a_h, a_v, boxes, cyls, u_sub,
                 oj = ci // s
                 if t < out[m, oi, oj]:
                     out[m, oi, oj] = t
+                if t < obj_min:
+                    obj_min = t
+    nearest_obj[m] = obj_min
 
 
 @numba.njit(cache=True)
-def _render_all(pos, yaw, visible, n_per_world, a_h, a_v, boxes, cyls, u_sub, v_sub, tu, tv, s, max_range, out):
+def _render_all(pos, yaw, pitch, visible, n_per_world, a_h, a_v, boxes, cyls, u_sub, v_sub, tu, tv, s, max_range,
+                out, nearest_obj):
     for m in range(pos.shape[0]):
-        _render_one(m, pos, yaw, visible, n_per_world, a_h, a_v, boxes, cyls, u_sub, v_sub, tu, tv, s, max_range, out)
+        _render_one(m, pos, yaw, pitch, visible, n_per_world, a_h, a_v, boxes, cyls, u_sub, v_sub, tu, tv, s,
+                    max_range, out, nearest_obj)
 
 
 @numba.njit(cache=True, parallel=True)
-def _render_all_parallel(pos, yaw, visible, n_per_world, a_h, a_v, boxes, cyls, u_sub, v_sub, tu, tv, s, max_range, out):
+def _render_all_parallel(pos, yaw, pitch, visible, n_per_world, a_h, a_v, boxes, cyls, u_sub, v_sub, tu, tv, s,
+                         max_range, out, nearest_obj):
     for m in numba.prange(pos.shape[0]):
-        _render_one(m, pos, yaw, visible, n_per_world, a_h, a_v, boxes, cyls, u_sub, v_sub, tu, tv, s, max_range, out)
+        _render_one(m, pos, yaw, pitch, visible, n_per_world, a_h, a_v, boxes, cyls, u_sub, v_sub, tu, tv, s,
+                    max_range, out, nearest_obj)
 
 
 # --------------------------------------------------------------------------- noise
 
+#: Intel RealSense D435 stereo geometry behind :class:`StereoNoise`'s defaults: 50 mm baseline,
+#: a focal length of ~447 px at 848x480 (87 deg horizontal FOV: 424 / tan(43.5 deg)) and a
+#: subpixel disparity error of ~0.08 px (Intel's depth tuning white paper: 0.05-0.1 px on a
+#: well-textured scene). RMS depth error = z^2 * subpixel / (focal_px * baseline).
+D435_BASELINE_M = 0.050
+D435_FOCAL_PX = 447.0
+D435_SUBPIXEL_PX = 0.08
+
+
 @dataclass(frozen=True)
 class StereoNoise:
-    """A stereo camera's errors: depth noise growing with the square of the depth, and dropouts.
+    """A stereo depth camera's errors, reported the way the RealSense SDK reports them.
 
-    ``sigma = quadratic_coeff_per_m * depth^2`` (a D435 at 4 m is off by ~2 %, i.e.
-    0.005 * 16 = 0.08 m), and each pixel is dropped with ``dropout_prob``; a dropped pixel
-    is "no data", which the companion's conversion turns into ``max_range_m``.
+    Applied to a perfect render (:meth:`DepthCamera.render`, nothing in range = ``max_range_m``):
+
+    * depth error: Gaussian with ``sigma = z^2 * subpixel_px / (focal_px * baseline_m)``
+      (the stereo RMS error; ~1.4 % at 4 m, ~3.6 % at 10 m with the D435 defaults);
+    * beyond the range: a pixel whose true depth is ``max_range_m`` or more (sky, a far
+      wall) is invalid, 0 — not a noisy far reading; nearer than ``min_range_m``: invalid too;
+    * holes, all invalid (0): far pixels fail to match with probability
+      ``far_hole_prob * (z / max_range_m)^2``; pixels at a depth edge (a 4-neighbour more than
+      ``edge_jump_fraction`` of its depth farther or nearer: the occlusion shadow of stereo)
+      with ``edge_hole_prob``; any pixel with ``dropout_prob``; and with ``blob_prob`` per
+      frame one rectangular blob (a textureless or glaring patch) of 2 to ``blob_max_px``
+      pixels per side.
+
+    The output follows :data:`companion.spec.INVALID_DEPTH_M`: invalid pixels read exactly 0,
+    which :func:`companion.observation.clean_depth` turns into ``max_range_m`` for the policy,
+    as onboard. Noise is drawn per policy pixel (the sim renders at the policy's resolution).
     """
 
-    quadratic_coeff_per_m: float = 0.005
+    baseline_m: float = D435_BASELINE_M
+    focal_px: float = D435_FOCAL_PX
+    subpixel_px: float = D435_SUBPIXEL_PX
+    min_range_m: float = 0.2
+    far_hole_prob: float = 0.3
+    edge_jump_fraction: float = 0.25
+    edge_hole_prob: float = 0.3
     dropout_prob: float = 0.01
+    blob_prob: float = 0.2
+    blob_max_px: int = 6
+
+    @property
+    def quadratic_coeff_per_m(self) -> float:
+        """sigma / z^2 (1/m)."""
+        return self.subpixel_px / (self.focal_px * self.baseline_m)
 
     def apply(self, depth_m: np.ndarray, max_range_m: float, rng: np.random.Generator) -> np.ndarray:
-        """Return a noisy copy of ``depth_m`` (float32), clipped to [0, max_range_m]."""
-        noisy = depth_m + rng.standard_normal(depth_m.shape, dtype=np.float32) * (
-            np.float32(self.quadratic_coeff_per_m) * depth_m * depth_m
-        )
-        noisy = np.clip(noisy, 0.0, max_range_m)
-        if self.dropout_prob > 0:
-            noisy[rng.random(depth_m.shape) < self.dropout_prob] = max_range_m
-        return noisy.astype(np.float32)
+        """Return a noisy float32 copy of perfect depth ``depth_m`` [..., H, W], invalid pixels 0."""
+        depth_m = np.asarray(depth_m, dtype=np.float32)
+        coeff = np.float32(self.quadratic_coeff_per_m)
+        noisy = depth_m + rng.standard_normal(depth_m.shape, dtype=np.float32) * (coeff * depth_m * depth_m)
+        z = np.clip(depth_m, 0.0, max_range_m) / np.float32(max_range_m)
+        invalid = (depth_m >= max_range_m) | (depth_m < self.min_range_m)
+        invalid |= rng.random(depth_m.shape, dtype=np.float32) < self.far_hole_prob * z * z + self.dropout_prob
+        if self.edge_hole_prob > 0:
+            edge = np.zeros(depth_m.shape, dtype=bool)
+            jump = np.abs(np.diff(depth_m, axis=-1)) > self.edge_jump_fraction * np.minimum(depth_m[..., 1:], depth_m[..., :-1])
+            edge[..., 1:] |= jump
+            edge[..., :-1] |= jump
+            jump = np.abs(np.diff(depth_m, axis=-2)) > self.edge_jump_fraction * np.minimum(depth_m[..., 1:, :], depth_m[..., :-1, :])
+            edge[..., 1:, :] |= jump
+            edge[..., :-1, :] |= jump
+            invalid |= edge & (rng.random(depth_m.shape, dtype=np.float32) < self.edge_hole_prob)
+        if self.blob_prob > 0 and depth_m.ndim >= 2:
+            height, width = depth_m.shape[-2:]
+            frames = depth_m.reshape(-1, height, width)
+            mask = invalid.reshape(-1, height, width)
+            for k in np.flatnonzero(rng.random(frames.shape[0]) < self.blob_prob):
+                bh, bw = rng.integers(2, self.blob_max_px + 1, size=2)
+                top, left = rng.integers(0, max(height - bh, 0) + 1), rng.integers(0, max(width - bw, 0) + 1)
+                mask[k, top:top + bh, left:left + bw] = True
+            invalid = mask.reshape(depth_m.shape)
+        noisy = np.maximum(noisy, np.float32(self.min_range_m))
+        noisy[invalid] = 0.0
+        return noisy.astype(np.float32, copy=False)

@@ -6,15 +6,21 @@ from dataclasses import asdict, dataclass, field
 
 from companion.spec import DEFAULT_TASK_SPEC, CameraSpec
 from sitl.sim.camera import SceneGeometry, StereoNoise
-from sitl.sim.dynamics import DYNAMICS_NAMES
+from sitl.sim.dynamics import DYNAMICS_NAMES, KinematicRandomization
 
 #: UAVs per cubic metre of the random scenarios' box (paper IV.B).
 DENSITIES: dict[str, float] = {"small": 0.1, "medium": 0.06, "large": 0.04}
-SCENARIOS = ("random", "circle")
-#: Training may also draw each world's episode from either scenario ("mixed").
+SCENARIOS = ("random", "circle", "obstacles")
+#: Training may also draw each world's episode from any scenario ("mixed").
 TRAINING_SCENARIOS = SCENARIOS + ("mixed",)
 #: The circle scenario's radius in m (paper IV.C: 8-32 UAVs on a circle, goals antipodal).
 CIRCLE_RADIUS_M = 12.0
+#: Static obstacles of the ``obstacles`` scene (a forest edge, a yard): vertical cylinders (poles,
+#: trunks) and boxes (sheds, containers), all standing on the ground.
+OBSTACLE_CYLINDER_RADIUS_M = (0.1, 0.5)  # a lamp post to a large trunk
+OBSTACLE_CYLINDER_HEIGHT_M = (8.0, 25.0)  # above ground: trees and masts, mostly taller than the flight
+OBSTACLE_BOX_HALF_SIDE_M = (0.4, 1.5)  # horizontal half-extents: a bin to a 3 m shed
+OBSTACLE_BOX_HEIGHT_M = (1.0, 8.0)  # above ground
 ARRIVED_BEHAVIOURS = ("hover", "remove")
 CRASHED_BEHAVIOURS = ("remove", "freeze")
 
@@ -29,6 +35,12 @@ class RewardConfig:
     w_avoid: float = -0.05
     d_safe_m: float = 5.0
     arrival_radius_m: float = DEFAULT_TASK_SPEC.arrival_radius_m
+    #: Whether eq. 4's d_min counts the ground. The paper takes the smallest depth of the whole
+    #: image (True reproduces it), so a UAV flying lower than d_safe = 5 m is punished every step
+    #: for the ground below it and learns not to fly low. False (the default, a documented
+    #: deviation: docs/training.md) takes d_min over other UAVs and obstacles only, as the
+    #: camera kernel reports them; the ground stays in the collision term (altitude < R).
+    avoid_counts_ground: bool = False
 
 
 @dataclass(frozen=True)
@@ -48,8 +60,26 @@ class ScenarioConfig:
     up to ``circle_jitter_m`` per axis (goals stay exactly antipodal to the nominal starts),
     so episodes differ even for a deterministic policy.
 
+    Obstacles: a random scene (same box, altitudes and jitter) among static obstacles standing
+    on the ground, drawn anew every episode over the box's footprint widened by
+    ``obstacle_margin_m`` on each side: ``obstacle_density_per_100m2`` obstacles per 100 m^2
+    of that area (rounded), a fraction ``obstacle_box_fraction`` of them boxes, the rest
+    vertical cylinders (sizes: the ``OBSTACLE_*`` ranges above). No obstacle comes closer than
+    ``obstacle_clearance_m`` to any start or goal (so no UAV starts or ends inside one); the
+    straight line between them may well be blocked — that is the point.
+
+    The task as flown (``altitude_range_m``, ``circle_alt_range_m``, ``circle_radius_range_m``
+    set, :func:`flown_scenario`): the random box floats at a floor drawn per episode uniformly in
+    ``[lo, hi - box height]``, so every start and goal lies between ``lo`` and ``hi`` above the
+    ground (the paper's geometry is ``altitude_range_m=None``: a fixed floor of
+    ``box_floor_alt_m``); the circle's altitude and radius are drawn per episode uniformly in
+    their ranges. ``start_jitter_m`` moves each random-scene start by a uniform offset of up to
+    that much per axis (redrawn while it would bring two starts closer than ``min_separation_m``
+    or a start below ``lo``), as ``circle_jitter_m`` does for the circle.
+
     Mixed (training only): each episode is a circle episode with probability
-    ``circle_fraction``, else a random one.
+    ``circle_fraction``, an obstacles one with probability ``obstacle_fraction``, else a
+    random one.
     """
 
     name: str = "random"
@@ -63,16 +93,71 @@ class ScenarioConfig:
     circle_alt_m: float = 10.0
     circle_jitter_m: float = 0.25
     circle_fraction: float = 0.5
+    altitude_range_m: tuple[float, float] | None = None  # random/obstacles: None = fixed floor box_floor_alt_m
+    start_jitter_m: float = 0.0  # random/obstacles: per-axis start offset, up to +-m
+    circle_alt_range_m: tuple[float, float] | None = None  # None: circle_alt_m
+    circle_radius_range_m: tuple[float, float] | None = None  # None: circle_radius_m
+    obstacle_density_per_100m2: float = 10.0  # ~1000 per hectare: a dense orchard or forest edge
+    obstacle_box_fraction: float = 0.25
+    obstacle_margin_m: float = 1.0
+    obstacle_clearance_m: float = 1.0  # > R + margin: free space around every start and goal
+    obstacle_fraction: float = 0.0  # mixed: probability of an obstacles episode
 
     def __post_init__(self) -> None:
         if self.name not in TRAINING_SCENARIOS:
             raise ValueError(f"unknown scenario {self.name!r}; choose one of {', '.join(TRAINING_SCENARIOS)}")
         if not 0.0 <= self.circle_fraction <= 1.0:
             raise ValueError(f"circle_fraction must be in [0, 1], got {self.circle_fraction}")
+        if not 0.0 <= self.obstacle_fraction <= 1.0 - self.circle_fraction:
+            raise ValueError(f"obstacle_fraction must be in [0, 1 - circle_fraction], got {self.obstacle_fraction}")
+        for name in ("altitude_range_m", "circle_alt_range_m", "circle_radius_range_m"):
+            value = getattr(self, name)
+            if value is not None:
+                lo, hi = value
+                if not 0.0 < lo <= hi < 100_000.0:
+                    raise ValueError(f"{name} must be (low, high) with 0 < low <= high, got {value}")
+                object.__setattr__(self, name, (float(lo), float(hi)))  # JSON round trips give lists
+        if not 0.0 <= self.start_jitter_m <= 10.0:
+            raise ValueError(f"start_jitter_m must be in [0, 10], got {self.start_jitter_m}")
+        if not 0.0 <= self.obstacle_density_per_100m2 <= 100.0:
+            raise ValueError(f"obstacle_density_per_100m2 must be in [0, 100], got {self.obstacle_density_per_100m2}")
+        if not 0.0 <= self.obstacle_box_fraction <= 1.0:
+            raise ValueError(f"obstacle_box_fraction must be in [0, 1], got {self.obstacle_box_fraction}")
+        if not 0.0 <= self.obstacle_margin_m <= 1000.0:
+            raise ValueError(f"obstacle_margin_m must be in [0, 1000], got {self.obstacle_margin_m}")
+        if not 0.5 <= self.obstacle_clearance_m <= 100.0:
+            raise ValueError(f"obstacle_clearance_m must be in [0.5, 100] (more than R plus a margin), "
+                             f"got {self.obstacle_clearance_m}")
         if not self.density > 0:
             raise ValueError(f"density must be > 0 UAV/m^3, got {self.density}")
         if not self.circle_radius_m > 0:
             raise ValueError(f"circle radius must be > 0 m, got {self.circle_radius_m}")
+
+
+#: The task as flown by drone builders (issue 15): starts and goals 1.5-15 m above the ground,
+#: circles at 2-15 m with radii 8-20 m, starts off by up to 0.5 m per axis.
+FLOWN_ALTITUDE_RANGE_M = (1.5, 15.0)
+FLOWN_CIRCLE_ALT_RANGE_M = (2.0, 15.0)
+FLOWN_CIRCLE_RADIUS_RANGE_M = (8.0, 20.0)
+FLOWN_START_JITTER_M = 0.5
+#: UAVs per cubic metre of the obstacle scene: sparser than the paper's ``large`` (0.04), so the
+#: 8 UAVs' lines are ~9 m long and cross the obstacles (flying straight, ~11 % of UAVs hit one).
+OBSTACLE_SCENE_DENSITY = 0.03
+#: The geometries a protocol or a training run names: ``paper`` (IV.B-C: 6 m floor, circle r = 12 m
+#: at 10 m, 0.25 m circle jitter) and ``flown`` (above).
+GEOMETRIES = ("paper", "flown")
+
+
+def scenario_for(geometry: str, name: str, **values) -> ScenarioConfig:
+    """The :class:`ScenarioConfig` of scenario ``name`` in ``geometry`` (``paper`` or ``flown``); ``values`` override fields."""
+    if geometry == "paper":
+        return ScenarioConfig(name=name, **values)
+    if geometry == "flown":
+        flown = dict(altitude_range_m=FLOWN_ALTITUDE_RANGE_M, start_jitter_m=FLOWN_START_JITTER_M,
+                     circle_alt_range_m=FLOWN_CIRCLE_ALT_RANGE_M, circle_radius_range_m=FLOWN_CIRCLE_RADIUS_RANGE_M,
+                     circle_jitter_m=FLOWN_START_JITTER_M)
+        return ScenarioConfig(name=name, **(flown | values))
+    raise ValueError(f"unknown geometry {geometry!r}; choose one of {', '.join(GEOMETRIES)}")
 
 
 def density_from_name(density: str | float) -> float:
@@ -97,11 +182,15 @@ class SimConfig:
     num_worlds: int = 1
     scenario: ScenarioConfig = field(default_factory=ScenarioConfig)
     dynamics: str = "kinematic"
+    dynamics_randomization: KinematicRandomization | None = None  # kinematic only; None: nominal
     control_period_s: float = 0.1  # one policy step; dynamics sub-step below it
     max_episode_steps: int = DEFAULT_TASK_SPEC.max_episode_steps  # 40 s at 10 Hz: > 3x the longest circle flight at full speed
     camera: CameraSpec = field(default_factory=CameraSpec)
     camera_supersample: int = 4  # sub-rays per pixel side, min-pooled (render high, pool down)
     camera_noise: StereoNoise | None = None  # None: perfect depth
+    #: Each UAV's camera mount pitch is drawn per episode uniformly within +-this many degrees of
+    #: ``camera.mount_pitch_deg`` (a body-fixed camera pitches with the airframe; 0: exactly the mount).
+    mount_pitch_jitter_deg: float = 0.0
     body: SceneGeometry = field(default_factory=SceneGeometry)
     collision_radius_m: float = DEFAULT_TASK_SPEC.collision_radius_m  # R: two UAVs collide when their centres are within 2R
     reward: RewardConfig = field(default_factory=RewardConfig)
@@ -124,8 +213,13 @@ class SimConfig:
             raise ValueError(f"arrived must be one of {ARRIVED_BEHAVIOURS}, got {self.arrived!r}")
         if self.crashed not in CRASHED_BEHAVIOURS:
             raise ValueError(f"crashed must be one of {CRASHED_BEHAVIOURS}, got {self.crashed!r}")
+        if not 0.0 <= self.mount_pitch_jitter_deg <= 30.0:
+            raise ValueError(f"mount_pitch_jitter_deg must be in [0, 30] deg, got {self.mount_pitch_jitter_deg}")
         if self.dynamics not in DYNAMICS_NAMES:
             raise ValueError(f"unknown dynamics {self.dynamics!r}; choose {' or '.join(DYNAMICS_NAMES)}")
+        if self.dynamics_randomization is not None and self.dynamics != "kinematic":
+            raise ValueError("dynamics_randomization applies to the kinematic backend only "
+                             f"(jsbsim flies its own airframe), got dynamics {self.dynamics!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -13,8 +13,8 @@ Per step and per UAV (paper III.B):
   actions raise, out-of-bounds ones are clipped to the bounds;
 * reward: eqs. 2-4 (:mod:`sitl.sim.reward`).
 
-A UAV's episode ends on arrival (terminated), on a collision with another UAV within 2R
-or with the ground (terminated), or when its world reaches ``max_episode_steps``
+A UAV's episode ends on arrival (terminated), on a collision with another UAV within 2R,
+with the ground or with a static obstacle (terminated), or when its world reaches ``max_episode_steps``
 (truncated). Afterwards it no longer acts: an arrived UAV hovers (or is removed, see
 ``SimConfig.arrived``), a crashed one is removed (or frozen in place, ``SimConfig.crashed``).
 Only the rows in ``acting`` (before the step) produced a real transition. A world whose
@@ -27,19 +27,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.observation import DepthFrameStack, build_state
+from companion.observation import DepthFrameStack, build_state, clean_depth
 from companion.spec import DEFAULT_ACTION_SPEC, ActionSpec
 from sitl.sim.camera import DepthCamera
-from sitl.sim.collision import ground_collisions, uav_uav_collisions
+from sitl.sim.collision import (DISABLED_BOX, DISABLED_CYLINDER, ground_collisions, obstacle_collisions,
+                                uav_uav_collisions)
 from sitl.sim.config import SimConfig
 from sitl.sim.dynamics import make_dynamics
 from sitl.sim.metrics import Outcome, UAVRecord
 from sitl.sim.reward import nearest_depth_m, step_reward
-from sitl.sim.scenarios import sample_scenario
+from sitl.sim.scenarios import max_obstacles, sample_scenario
 
 # Outcome codes kept per UAV while an episode runs.
 # The per-row outcome codes of ``SwarmEnv.outcome`` (see :class:`sitl.sim.metrics.Outcome`).
-RUNNING, ARRIVED, COLLISION_UAV, COLLISION_GROUND, TIMEOUT = Outcome
+RUNNING, ARRIVED, COLLISION_UAV, COLLISION_GROUND, TIMEOUT, COLLISION_OBSTACLE = Outcome
 
 
 @dataclass
@@ -56,8 +57,9 @@ class SwarmEnv:
     Args:
         config: the worlds' configuration.
         seed: seed of the environment's random generator (scenarios and camera noise).
-        boxes, cylinders: optional static obstacles per world (see :mod:`sitl.sim.camera`);
-            they are rendered but, like the paper's scenes, the scenarios do not place any.
+        boxes, cylinders: optional static obstacles per world (see :mod:`sitl.sim.camera`), in
+            every episode; the ``obstacles`` scenario adds its own, drawn per episode. UAVs
+            collide with both (:func:`sitl.sim.collision.obstacle_collisions`).
     """
 
     def __init__(self, config: SimConfig, seed: int | None = None,
@@ -71,7 +73,20 @@ class SwarmEnv:
         self.dynamics = make_dynamics(config.dynamics, self.num_agents)
         self.camera = DepthCamera(config.camera, config.camera_supersample, config.body)
         self.frames = DepthFrameStack(self.num_agents, config.camera)
-        self.boxes, self.cylinders = boxes, cylinders
+        # Per-world obstacle arrays: the fixed ones given here, then room for the scenario's own
+        # (rows DISABLED_* until an episode places them).
+        b = config.num_worlds
+        fixed_boxes = np.zeros((b, 0, 6)) if boxes is None else np.asarray(boxes, dtype=np.float64)
+        fixed_cylinders = np.zeros((b, 0, 5)) if cylinders is None else np.asarray(cylinders, dtype=np.float64)
+        if fixed_boxes.shape[0] != b or fixed_cylinders.shape[0] != b:
+            raise ValueError(f"boxes and cylinders need one (possibly empty) row per world ({b})")
+        self._fixed_obstacles = (fixed_boxes.shape[1], fixed_cylinders.shape[1])
+        k_boxes, k_cylinders = max_obstacles(config.num_uavs, config.scenario)
+        self.boxes = np.concatenate([fixed_boxes, np.tile(DISABLED_BOX, (b, k_boxes, 1))], axis=1)
+        self.cylinders = np.concatenate([fixed_cylinders, np.tile(DISABLED_CYLINDER, (b, k_cylinders, 1))], axis=1)
+        # Each camera's mount pitch (rad, positive up), drawn per episode (SimConfig.mount_pitch_jitter_deg).
+        self.mount_pitch_rad = np.full(self.num_agents, config.camera.mount_pitch_rad)
+        self.nearest_object_m = np.full(self.num_agents, config.camera.max_range_m)  # d_min without the ground
 
         m = self.num_agents
         self.goal_ned = np.zeros((m, 3))
@@ -123,6 +138,12 @@ class SwarmEnv:
             self._record_world(b)
             sample = sample_scenario(n, self.config.scenario, self.rng)
             self.dynamics.reset(rows, sample.start_ned, sample.yaw_rad)
+            if self.config.dynamics_randomization is not None:
+                self.dynamics.randomize(rows, self.config.dynamics_randomization, self.rng)
+            self._place_obstacles(b, sample.boxes, sample.cylinders)
+            if self.config.mount_pitch_jitter_deg > 0:
+                jitter = np.radians(self.config.mount_pitch_jitter_deg)
+                self.mount_pitch_rad[rows] = self.config.camera.mount_pitch_rad + self.rng.uniform(-jitter, jitter, n)
             self.start_ned[rows] = sample.start_ned
             self.goal_ned[rows] = sample.goal_ned
             self.acting[rows] = True
@@ -179,10 +200,13 @@ class SwarmEnv:
         hit_uav = uav_uav_collisions(prev_pos, dynamics.pos_ned, self.present, self.uavs_per_world,
                                      cfg.collision_radius_m) & acting
         hit_ground = ground_collisions(dynamics.pos_ned, cfg.collision_radius_m) & acting
-        collided = hit_uav | hit_ground
+        hit_obstacle = obstacle_collisions(prev_pos, dynamics.pos_ned, self.boxes, self.cylinders,
+                                           self.uavs_per_world, cfg.collision_radius_m) & acting
+        collided = hit_uav | hit_ground | hit_obstacle
         dist = self.distance_to_goal_m()
         arrived = (dist < cfg.reward.arrival_radius_m) & acting & ~collided
 
+        self.outcome[hit_obstacle] = COLLISION_OBSTACLE
         self.outcome[hit_ground] = COLLISION_GROUND
         self.outcome[hit_uav] = COLLISION_UAV
         self.outcome[arrived] = ARRIVED
@@ -196,7 +220,8 @@ class SwarmEnv:
 
         depth = self._render()
         self.frames.push(depth)
-        reward = step_reward(prev_dist, dist, arrived, collided, nearest_depth_m(depth), cfg.reward)
+        d_min = nearest_depth_m(depth) if cfg.reward.avoid_counts_ground else self.nearest_object_m
+        reward = step_reward(prev_dist, dist, arrived, collided, d_min, cfg.reward)
         reward = np.where(acting, reward, 0.0).astype(np.float32)
         terminated = collided | arrived
         info = {"acting": acting, "outcome": self.outcome.copy(), "collided": collided, "arrived": arrived}
@@ -204,12 +229,28 @@ class SwarmEnv:
 
     # ------------------------------------------------------------------ internals
     def _render(self) -> np.ndarray:
+        """The policy's view of every camera now: render, sensor noise, then the companion's conversion.
+
+        Also updates :attr:`nearest_object_m` (the kernel's nearest non-ground surface per camera,
+        noise-free: the reward's d_min when the ground does not count).
+        """
         cfg = self.config
-        depth = self.camera.render(self.dynamics.pos_ned, self.dynamics.yaw_rad, self.uavs_per_world,
-                                   visible=self.present, boxes=self.boxes, cylinders=self.cylinders)
+        depth, self.nearest_object_m = self.camera.render_with_objects(
+            self.dynamics.pos_ned, self.dynamics.yaw_rad, self.uavs_per_world, visible=self.present,
+            boxes=self.boxes, cylinders=self.cylinders, pitch_rad=self.mount_pitch_rad)
         if cfg.camera_noise is not None:
-            depth = cfg.camera_noise.apply(depth, cfg.camera.max_range_m, self.rng)
-        return depth
+            depth = cfg.camera_noise.apply(depth, cfg.camera.max_range_m, self.rng)  # raw: invalid pixels read 0
+        return clean_depth(depth, cfg.camera.max_range_m)  # exactly what the companion feeds the policy
+
+    def _place_obstacles(self, b: int, boxes: np.ndarray, cylinders: np.ndarray) -> None:
+        """World b's scenario obstacles for the new episode (the fixed ones stay; unused rows disabled)."""
+        kb, kc = self._fixed_obstacles
+        if len(boxes) > self.boxes.shape[1] - kb or len(cylinders) > self.cylinders.shape[1] - kc:
+            raise ValueError("the scenario placed more obstacles than the environment holds")
+        self.boxes[b, kb:] = DISABLED_BOX
+        self.boxes[b, kb:kb + len(boxes)] = boxes
+        self.cylinders[b, kc:] = DISABLED_CYLINDER
+        self.cylinders[b, kc:kc + len(cylinders)] = cylinders
 
     def _record_world(self, b: int) -> None:
         """Append the per-UAV records of world b's finished episode to :attr:`completed`."""

@@ -17,10 +17,11 @@ class Outcome(IntEnum):
     COLLISION_UAV = 2
     COLLISION_GROUND = 3
     TIMEOUT = 4
+    COLLISION_OBSTACLE = 5  # a static obstacle (pole, tree, box) of the ``obstacles`` scene
 
     @property
     def code(self) -> str:
-        """``"arrived"``, ``"collision_uav"``, ``"collision_ground"`` or ``"timeout"``."""
+        """``"arrived"``, ``"collision_uav"``, ``"collision_ground"``, ``"timeout"`` or ``"collision_obstacle"``."""
         return self.name.lower()
 
 
@@ -89,8 +90,8 @@ def summarize(records: list[UAVRecord]) -> dict:
     * extra_distance_m: p - l over the UAVs that succeeded (a failed flight has no
       comparable path);
     * average_speed_m_s: p / flight time over all UAVs ("the average speed of all UAVs");
-    * rate of each outcome (collision with a UAV, with the ground, timeout), which add up
-      to 1 - success_rate.
+    * rate of each outcome (collision with a UAV, with the ground, timeout, with a static
+      obstacle), which add up to 1 - success_rate.
     """
     count = len(records)
     successes = [r for r in records if r.success]
@@ -106,3 +107,25 @@ def summarize(records: list[UAVRecord]) -> dict:
     for outcome in OUTCOMES[1:]:
         summary[f"{outcome}_rate"] = sum(r.outcome == outcome for r in records) / count if count else float("nan")
     return summary
+
+
+#: Goal altitude bins (m above the ground) of :func:`success_by_goal_altitude`: low flight, the
+#: middle, and the paper's geometry (which starts at a 6 m floor).
+GOAL_ALTITUDE_BINS_M: tuple[tuple[str, float, float], ...] = (("below 3 m", 0.0, 3.0), ("3-6 m", 3.0, 6.0),
+                                                                ("above 6 m", 6.0, float("inf")))
+
+
+def success_by_goal_altitude(records: list[UAVRecord]) -> dict[str, dict]:
+    """Success split by the goal's altitude (:data:`GOAL_ALTITUDE_BINS_M`): per bin the UAV-episodes,
+    the success rate and its clustered 95 % half-width, and the timeout rate (NaN for an empty bin)."""
+    out = {}
+    for label, lo, hi in GOAL_ALTITUDE_BINS_M:
+        chosen = [r for r in records if lo <= -r.goal_ned[2] < hi]
+        n = len(chosen)
+        out[label] = {
+            "uav_episodes": n,
+            "success_rate": sum(r.success for r in chosen) / n if n else float("nan"),
+            "success_ci95_half_width": success_half_width(chosen),
+            "timeout_rate": sum(r.outcome == "timeout" for r in chosen) / n if n else float("nan"),
+        }
+    return out

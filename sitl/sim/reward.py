@@ -8,7 +8,11 @@ from sitl.sim.config import RewardConfig
 
 
 def nearest_depth_m(depth_m: np.ndarray) -> np.ndarray:
-    """d_min of eq. 4: the smallest depth in each UAV's newest image [M, H, W] -> [M]."""
+    """The paper's d_min of eq. 4: the smallest depth in each UAV's newest image [M, H, W] -> [M].
+
+    It counts the ground (``RewardConfig.avoid_counts_ground``); without it, the environment
+    takes d_min from the camera kernel's nearest UAV or obstacle (``DepthCamera.render_with_objects``).
+    """
     return depth_m.reshape(depth_m.shape[0], -1).min(axis=1)
 
 

@@ -1,14 +1,21 @@
-"""Start and goal positions of the paper's test scenarios (paper IV.B); see :class:`ScenarioConfig`."""
+"""Start and goal positions (and static obstacles) of every scenario; see :class:`ScenarioConfig`.
+
+The paper's scenes (IV.B-C) are ``random`` and ``circle`` with the default geometry; the task as
+flown (:func:`sitl.sim.config.scenario_for` ``("flown", ...)``) draws altitudes, circle sizes and
+start offsets per episode, and ``obstacles`` puts poles, trees and boxes among the UAVs.
+"""
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from companion.frames import wrap_angle_rad
-from sitl.sim.config import ScenarioConfig
+from sitl.sim.collision import distance_to_obstacles_m
+from sitl.sim.config import (OBSTACLE_BOX_HALF_SIDE_M, OBSTACLE_BOX_HEIGHT_M, OBSTACLE_CYLINDER_HEIGHT_M,
+                             OBSTACLE_CYLINDER_RADIUS_M, ScenarioConfig)
 
 #: Test seeds (the final evaluation of a training run, ``swarm_test``) are ``EVAL_SEED_OFFSET + seed``;
 #: training seeds stay below it.
@@ -25,6 +32,8 @@ class ScenarioSample:
     start_ned: np.ndarray  # [N, 3]
     goal_ned: np.ndarray  # [N, 3]
     yaw_rad: np.ndarray  # [N]
+    boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))  # [Kb, 6] static boxes (camera layout)
+    cylinders: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)))  # [Kc, 5] static vertical cylinders
 
 
 def random_box_size(num_uavs: int, density: float, aspect: float) -> tuple[float, float]:
@@ -63,24 +72,107 @@ def _spread_points(count: int, low: np.ndarray, high: np.ndarray, min_sep: float
     return points
 
 
+def box_floor_alt_m(num_uavs: int, config: ScenarioConfig, rng: np.random.Generator) -> float:
+    """The random box's floor altitude (m) for one episode: fixed, or drawn so the box fits the altitude range."""
+    if config.altitude_range_m is None:
+        return config.box_floor_alt_m
+    _, height = random_box_size(num_uavs, config.density, config.box_aspect)
+    lo, hi = config.altitude_range_m
+    if lo + height > hi:
+        raise ValueError(f"the random box of {num_uavs} UAVs at {config.density:g} UAV/m^3 is {height:.1f} m tall: "
+                         f"it does not fit between {lo:g} and {hi:g} m above the ground")
+    return float(rng.uniform(lo, hi - height))
+
+
+def _jitter_starts(start: np.ndarray, config: ScenarioConfig, rng: np.random.Generator, max_tries: int = 50) -> np.ndarray:
+    """Each start moved by up to ``start_jitter_m`` per axis, kept ``min_separation_m`` from the others and
+    above the lowest altitude (a start whose every try fails stays where it was planned)."""
+    if config.start_jitter_m <= 0:
+        return start
+    lowest_alt = config.altitude_range_m[0] if config.altitude_range_m else 0.0
+    out = start.copy()
+    for i in range(len(start)):
+        for _ in range(max_tries):
+            candidate = start[i] + rng.uniform(-config.start_jitter_m, config.start_jitter_m, 3)
+            others = np.delete(out, i, axis=0)
+            if -candidate[2] < lowest_alt:
+                continue
+            if len(others) and np.min(np.linalg.norm(others - candidate, axis=1)) < config.min_separation_m:
+                continue
+            out[i] = candidate
+            break
+    return out
+
+
 def sample_random(num_uavs: int, config: ScenarioConfig, rng: np.random.Generator) -> ScenarioSample:
     """Random scenario: starts and goals uniformly in a box whose volume sets the density."""
     side, height = random_box_size(num_uavs, config.density, config.box_aspect)
+    floor = box_floor_alt_m(num_uavs, config, rng)
     # NED box centred on the origin horizontally; z is down, so altitudes are negated.
-    low = np.array([-side / 2, -side / 2, -(config.box_floor_alt_m + height)])
-    high = np.array([side / 2, side / 2, -config.box_floor_alt_m])
+    low = np.array([-side / 2, -side / 2, -(floor + height)])
+    high = np.array([side / 2, side / 2, -floor])
     start = _spread_points(num_uavs, low, high, config.min_separation_m, rng)
     goal = _spread_points(num_uavs, low, high, config.min_separation_m, rng,
                           avoid=start, avoid_min=config.min_goal_distance_m)
+    start = _jitter_starts(start, config, rng)
     yaw = _bearing_rad(start, goal) + rng.uniform(-config.yaw_jitter_rad, config.yaw_jitter_rad, num_uavs)
     return ScenarioSample(start, goal, wrap_angle_rad(yaw))
+
+
+def obstacle_counts(num_uavs: int, config: ScenarioConfig) -> tuple[int, int]:
+    """(boxes, cylinders) of one ``obstacles`` episode: the density times the widened footprint of the box."""
+    side, _ = random_box_size(num_uavs, config.density, config.box_aspect)
+    area_m2 = (side + 2 * config.obstacle_margin_m) ** 2
+    total = int(round(config.obstacle_density_per_100m2 * area_m2 / 100.0))
+    boxes = int(round(total * config.obstacle_box_fraction))
+    return boxes, total - boxes
+
+
+def _place_obstacles(num_uavs: int, config: ScenarioConfig, keep_clear: np.ndarray,
+                     rng: np.random.Generator, max_tries: int = 200) -> tuple[np.ndarray, np.ndarray]:
+    """Boxes and cylinders standing on the ground around the box, each ``obstacle_clearance_m`` from
+    every point of ``keep_clear`` [P, 3]. One that finds no free place in ``max_tries`` is left out
+    (the scene is then a little sparser; at the default density this does not happen)."""
+    side, _ = random_box_size(num_uavs, config.density, config.box_aspect)
+    half = side / 2 + config.obstacle_margin_m
+    n_boxes, n_cylinders = obstacle_counts(num_uavs, config)
+    boxes, cylinders = [], []
+    for kind, count in (("box", n_boxes), ("cylinder", n_cylinders)):
+        for _ in range(count):
+            for _ in range(max_tries):
+                north, east = rng.uniform(-half, half, 2)
+                if kind == "box":
+                    hn, he = rng.uniform(*OBSTACLE_BOX_HALF_SIDE_M, 2)
+                    height = rng.uniform(*OBSTACLE_BOX_HEIGHT_M)
+                    row = np.array([north, east, -height / 2, hn, he, height / 2])
+                    shape = (row[None], np.zeros((0, 5)))
+                else:
+                    radius = rng.uniform(*OBSTACLE_CYLINDER_RADIUS_M)
+                    height = rng.uniform(*OBSTACLE_CYLINDER_HEIGHT_M)
+                    row = np.array([north, east, radius, -height, 0.0])
+                    shape = (np.zeros((0, 6)), row[None])
+                if distance_to_obstacles_m(keep_clear, *shape).min() >= config.obstacle_clearance_m:
+                    (boxes if kind == "box" else cylinders).append(row)
+                    break
+    return np.array(boxes).reshape(-1, 6), np.array(cylinders).reshape(-1, 5)
+
+
+def sample_obstacles(num_uavs: int, config: ScenarioConfig, rng: np.random.Generator) -> ScenarioSample:
+    """Obstacles scenario: a random scene among static boxes and vertical cylinders (poles, trees)."""
+    sample = sample_random(num_uavs, config, rng)
+    keep_clear = np.concatenate([sample.start_ned, sample.goal_ned])
+    sample.boxes, sample.cylinders = _place_obstacles(num_uavs, config, keep_clear, rng)
+    return sample
 
 
 def sample_circle(num_uavs: int, config: ScenarioConfig, rng: np.random.Generator) -> ScenarioSample:
     """Circle scenario: evenly spaced on a circle, goals antipodal, formation randomly rotated."""
     angles = rng.uniform(0, 2 * math.pi) + 2 * math.pi * np.arange(num_uavs) / num_uavs
-    ring = np.stack([np.cos(angles), np.sin(angles), np.zeros(num_uavs)], axis=1) * config.circle_radius_m
-    ring[:, 2] = -config.circle_alt_m
+    # Drawn only when asked, so the paper's circle consumes the generator exactly as before.
+    radius = rng.uniform(*config.circle_radius_range_m) if config.circle_radius_range_m else config.circle_radius_m
+    alt = rng.uniform(*config.circle_alt_range_m) if config.circle_alt_range_m else config.circle_alt_m
+    ring = np.stack([np.cos(angles), np.sin(angles), np.zeros(num_uavs)], axis=1) * radius
+    ring[:, 2] = -alt
     goal = ring * np.array([-1.0, -1.0, 1.0])
     start = ring + rng.uniform(-config.circle_jitter_m, config.circle_jitter_m, ring.shape)
     return ScenarioSample(start, goal, _bearing_rad(start, goal))
@@ -89,10 +181,23 @@ def sample_circle(num_uavs: int, config: ScenarioConfig, rng: np.random.Generato
 def sample_scenario(num_uavs: int, config: ScenarioConfig, rng: np.random.Generator) -> ScenarioSample:
     """Draw one episode of the configured scenario."""
     if config.name == "mixed":
-        draw_circle = rng.random() < config.circle_fraction
-        return (sample_circle if draw_circle else sample_random)(num_uavs, config, rng)
+        u = rng.random()  # one draw, as before obstacles existed: the paper's mixed training is unchanged
+        if u < config.circle_fraction:
+            return sample_circle(num_uavs, config, rng)
+        if u < config.circle_fraction + config.obstacle_fraction:
+            return sample_obstacles(num_uavs, config, rng)
+        return sample_random(num_uavs, config, rng)
     if config.name == "random":
         return sample_random(num_uavs, config, rng)
     if config.name == "circle":
         return sample_circle(num_uavs, config, rng)
+    if config.name == "obstacles":
+        return sample_obstacles(num_uavs, config, rng)
     raise ValueError(f"unknown scenario {config.name!r}")
+
+
+def max_obstacles(num_uavs: int, config: ScenarioConfig) -> tuple[int, int]:
+    """(boxes, cylinders) rows an environment must hold per world for ``config``'s episodes."""
+    if config.name == "obstacles" or (config.name == "mixed" and config.obstacle_fraction > 0):
+        return obstacle_counts(num_uavs, config)
+    return 0, 0

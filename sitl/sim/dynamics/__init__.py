@@ -7,7 +7,7 @@ one JSBSim rigid-body quadrotor per UAV under a velocity controller.
 from __future__ import annotations
 
 from sitl.sim.dynamics.base import Dynamics
-from sitl.sim.dynamics.kinematic import KinematicDynamics, KinematicParams
+from sitl.sim.dynamics.kinematic import KinematicDynamics, KinematicParams, KinematicRandomization
 
 DYNAMICS_NAMES = ("kinematic", "jsbsim")
 
@@ -23,4 +23,4 @@ def make_dynamics(name: str, num_uavs: int) -> Dynamics:
     raise ValueError(f"unknown dynamics {name!r}; choose one of {', '.join(DYNAMICS_NAMES)}")
 
 
-__all__ = ["DYNAMICS_NAMES", "Dynamics", "KinematicDynamics", "KinematicParams", "make_dynamics"]
+__all__ = ["DYNAMICS_NAMES", "Dynamics", "KinematicDynamics", "KinematicParams", "KinematicRandomization", "make_dynamics"]

@@ -7,6 +7,10 @@ vertical separately), as PX4's ``MPC_ACC_HOR`` / ``MPC_ACC_UP_MAX`` do. Velocity
 NED, so a UAV that turns keeps part of its old velocity for a moment — it slides through
 turns as a real multicopter does. Yaw rate follows the same law with its own limits.
 Integration is explicit Euler on ``substep_s`` sub-steps of each control period.
+
+Every UAV has its own response (arrays in the backend): nominal :class:`KinematicParams` by
+default; :meth:`KinematicDynamics.randomize` draws each UAV's time constants and acceleration
+limits from a :class:`KinematicRandomization` (training: a policy must not rely on one airframe).
 """
 
 from __future__ import annotations
@@ -33,12 +37,54 @@ class KinematicParams:
     substep_s: float = 0.02
 
 
+@dataclass(frozen=True)
+class KinematicRandomization:
+    """Ranges (low, high) from which each UAV's response is drawn uniformly, per UAV and episode.
+
+    Based on real multicopters: PX4's velocity-mode acceleration ``MPC_ACC_HOR_MAX`` defaults to
+    5 m/s^2 and ``MPC_ACC_HOR`` to 3 (hobby setups lower it to ~2), ``MPC_ACC_UP_MAX`` 4 and
+    ``MPC_ACC_DOWN_MAX`` 3; ArduPilot's ``WPNAV_ACCEL`` 2.5 m/s^2. The velocity loop's lag: the
+    JSBSim F450 (``sitl.sim.dynamics.jsbsim_quad``) rises 10-90 % in 0.61 s, a first-order lag of
+    ~0.28 s; a stiffly tuned 250-class racer is near 0.15 s, a loaded 5 kg hexacopter near 0.5 s.
+    """
+
+    tau_horizontal_s: tuple[float, float] = (0.15, 0.5)
+    tau_vertical_s: tuple[float, float] = (0.15, 0.5)
+    tau_yaw_s: tuple[float, float] = (0.1, 0.3)
+    max_acc_horizontal_m_s2: tuple[float, float] = (2.0, 5.0)
+    max_acc_vertical_m_s2: tuple[float, float] = (1.0, 4.0)
+    max_yaw_acc_rad_s2: tuple[float, float] = (2.0, 4.0)
+
+    def __post_init__(self) -> None:
+        for name in _RESPONSE_FIELDS:
+            lo, hi = getattr(self, name)
+            if not 0.0 < lo <= hi < 1000.0:
+                raise ValueError(f"{name} must be (low, high) with 0 < low <= high, got {(lo, hi)}")
+            object.__setattr__(self, name, (float(lo), float(hi)))
+
+
+#: The per-UAV response fields shared by KinematicParams and KinematicRandomization.
+_RESPONSE_FIELDS = ("tau_horizontal_s", "tau_vertical_s", "tau_yaw_s", "max_acc_horizontal_m_s2",
+                    "max_acc_vertical_m_s2", "max_yaw_acc_rad_s2")
+
+
 class KinematicDynamics(Dynamics):
-    """Fast vectorized kinematic model of M quadrotors (numba kernel)."""
+    """Fast vectorized kinematic model of M quadrotors (numba kernel), each UAV with its own response."""
 
     def __init__(self, num_uavs: int, params: KinematicParams = KinematicParams()) -> None:
         super().__init__(num_uavs)
         self.params = params
+        #: [M] per-UAV response, one array per field of _RESPONSE_FIELDS (nominal: ``params``).
+        self.response = {name: np.full(num_uavs, float(getattr(params, name))) for name in _RESPONSE_FIELDS}
+
+    def randomize(self, index: np.ndarray, ranges: KinematicRandomization | None, rng: np.random.Generator) -> None:
+        """Draw the response of UAVs ``index`` from ``ranges`` (None: back to the nominal ``params``)."""
+        for name in _RESPONSE_FIELDS:
+            if ranges is None:
+                self.response[name][index] = getattr(self.params, name)
+            else:
+                lo, hi = getattr(ranges, name)
+                self.response[name][index] = rng.uniform(lo, hi, len(index))
 
     def reset(self, index: np.ndarray, pos_ned: np.ndarray, yaw_rad: np.ndarray) -> None:
         self.pos_ned[index] = pos_ned
@@ -53,16 +99,17 @@ class KinematicDynamics(Dynamics):
             self.pos_ned, self.vel_ned, self.yaw_rad, self.yaw_rate_rad_s,
             np.ascontiguousarray(cmd_frd, dtype=np.float64), np.ascontiguousarray(active, dtype=np.bool_),
             dt_s / n_sub, n_sub,
-            p.tau_horizontal_s, p.tau_vertical_s, p.tau_yaw_s,
-            p.max_acc_horizontal_m_s2, p.max_acc_vertical_m_s2, p.max_yaw_acc_rad_s2,
+            *(self.response[name] for name in _RESPONSE_FIELDS),
         )
 
 
 @numba.njit(cache=True)
-def _integrate(pos, vel, yaw, yaw_rate, cmd, active, h, n_sub, tau_h, tau_v, tau_yaw, acc_h, acc_v, acc_yaw):
+def _integrate(pos, vel, yaw, yaw_rate, cmd, active, h, n_sub, tau_h_a, tau_v_a, tau_yaw_a, acc_h_a, acc_v_a, acc_yaw_a):
     for m in range(pos.shape[0]):
         if not active[m]:
             continue
+        tau_h, tau_v, tau_yaw = tau_h_a[m], tau_v_a[m], tau_yaw_a[m]
+        acc_h, acc_v, acc_yaw = acc_h_a[m], acc_v_a[m], acc_yaw_a[m]
         for _ in range(n_sub):
             c = math.cos(yaw[m])
             s = math.sin(yaw[m])

@@ -1,0 +1,151 @@
+"""The task as flown: altitude ranges, circle ranges, start jitter, obstacles, dynamics randomization, the protocol."""
+
+from __future__ import annotations
+
+import json
+from itertools import combinations
+
+import numpy as np
+import pytest
+
+from sitl.eval.cli import main
+from sitl.sim.collision import distance_to_obstacles_m
+from sitl.sim.config import (FLOWN_ALTITUDE_RANGE_M, OBSTACLE_SCENE_DENSITY, ScenarioConfig, SimConfig,
+                             scenario_for)
+from sitl.sim.dynamics import KinematicDynamics, KinematicRandomization
+from sitl.sim.env import SwarmEnv
+from sitl.sim.metrics import UAVRecord, success_by_goal_altitude
+from sitl.sim.scenarios import obstacle_counts, sample_circle, sample_obstacles, sample_random
+
+
+def test_flown_random_scene_spans_the_altitude_range_with_bounded_jitter():
+    cfg = scenario_for("flown", "random")
+    rng = np.random.default_rng(0)
+    lo, hi = FLOWN_ALTITUDE_RANGE_M
+    floors = []
+    for _ in range(200):
+        s = sample_random(8, cfg, rng)
+        for pts in (s.start_ned, s.goal_ned):
+            assert np.all((-pts[:, 2] >= lo - 1e-9) & (-pts[:, 2] <= hi + cfg.start_jitter_m + 1e-9))
+        assert min(np.linalg.norm(a - b) for a, b in combinations(s.start_ned, 2)) >= cfg.min_separation_m - 1e-9
+        floors.append(-s.goal_ned[:, 2].max())
+    assert min(floors) < 3.0 and max(floors) > 10.0  # the floor is drawn per episode over the whole range
+
+
+def test_paper_geometry_is_the_default_and_draws_the_same_episodes():
+    assert scenario_for("paper", "random") == ScenarioConfig(name="random")
+    a = sample_random(8, ScenarioConfig(), np.random.default_rng(3))
+    assert np.all(-a.start_ned[:, 2] >= 6.0)  # the paper's 6 m floor, unchanged
+    with pytest.raises(ValueError, match="does not fit"):
+        sample_random(8, ScenarioConfig(altitude_range_m=(1.5, 3.0)), np.random.default_rng(0))
+
+
+def test_flown_circle_draws_radius_and_altitude_per_episode():
+    cfg = scenario_for("flown", "circle")
+    rng = np.random.default_rng(0)
+    radii, alts = [], []
+    for _ in range(100):
+        s = sample_circle(8, cfg, rng)
+        r = np.linalg.norm(s.goal_ned[:, :2], axis=1)
+        np.testing.assert_allclose(r, r[0])
+        radii.append(r[0])
+        alts.append(-s.goal_ned[0, 2])
+        assert np.all(np.abs(s.start_ned - s.goal_ned * [-1, -1, 1]) <= cfg.circle_jitter_m + 1e-9)
+    assert 8.0 <= min(radii) < 10.0 and 18.0 < max(radii) <= 20.0
+    assert 2.0 <= min(alts) < 4.0 and 13.0 < max(alts) <= 15.0
+
+
+def test_obstacles_keep_clear_of_starts_and_goals():
+    cfg = scenario_for("flown", "obstacles", density=OBSTACLE_SCENE_DENSITY)
+    rng = np.random.default_rng(1)
+    boxes, cylinders = obstacle_counts(8, cfg)
+    assert boxes >= 1 and cylinders >= 4
+    for _ in range(30):
+        s = sample_obstacles(8, cfg, rng)
+        assert len(s.boxes) + len(s.cylinders) >= 1
+        d = distance_to_obstacles_m(np.concatenate([s.start_ned, s.goal_ned]), s.boxes, s.cylinders)
+        assert d.min() >= cfg.obstacle_clearance_m
+        assert np.all(s.cylinders[:, 4] == 0.0) and np.all(s.boxes[:, 2] + s.boxes[:, 5] == pytest.approx(0.0))
+
+
+def test_flying_into_a_pole_ends_the_episode_as_an_obstacle_collision():
+    # One UAV flies straight at its goal 10 m north; a 0.2 m pole stands half-way.
+    cfg = SimConfig(num_uavs=1, scenario=ScenarioConfig(name="random", density=0.01, min_goal_distance_m=0.0))
+    pole = np.array([[[0.0, 0.0, 0.2, -30.0, 0.0]]])
+    env = SwarmEnv(cfg, seed=0, cylinders=pole)
+    env.reset()
+    env.dynamics.reset(np.array([0]), np.array([[-5.0, 0.0, -8.0]]), np.array([0.0]))
+    env.goal_ned[0] = [5.0, 0.0, -8.0]
+    for _ in range(100):
+        _, reward, term, _, info = env.step(np.array([[2.0, 0.0, 0.0]]))
+        if term[0]:
+            break
+    assert env.outcome[0] == 5 and reward[0] < cfg.reward.r_collision + 1.0  # the collision penalty (plus progress)
+    assert abs(env.dynamics.pos_ned[0, 0]) < 0.6  # stopped at the pole, not behind it
+    records = env.finish()
+    assert records[0].outcome == "collision_obstacle"
+    # Obstacles drawn per episode are rendered: the camera sees something nearer than the range.
+    env = SwarmEnv(SimConfig(num_uavs=8, scenario=scenario_for("flown", "obstacles", density=OBSTACLE_SCENE_DENSITY)),
+                   seed=0)
+    env.reset()
+    assert np.any(env.cylinders[0, :, 2] > 0.0) and env.cylinders.shape[1] == obstacle_counts(8, env.config.scenario)[1]
+
+
+def test_dynamics_randomization_draws_per_uav_and_episode():
+    ranges = KinematicRandomization()
+    env = SwarmEnv(SimConfig(num_uavs=8, num_worlds=2, dynamics_randomization=ranges), seed=0)
+    env.reset()
+    tau = env.dynamics.response["tau_horizontal_s"].copy()
+    assert np.all((tau >= 0.15) & (tau <= 0.5)) and len(np.unique(tau)) == 16
+    acc = env.dynamics.response["max_acc_horizontal_m_s2"]
+    assert np.all((acc >= 2.0) & (acc <= 5.0))
+    env.reset_worlds(np.array([True, False]))
+    assert not np.allclose(env.dynamics.response["tau_horizontal_s"][:8], tau[:8])
+    np.testing.assert_array_equal(env.dynamics.response["tau_horizontal_s"][8:], tau[8:])
+    nominal = SwarmEnv(SimConfig(num_uavs=8), seed=0)
+    nominal.reset()
+    assert np.all(nominal.dynamics.response["tau_horizontal_s"] == 0.25)
+    # The drawn response is what the UAV flies: a 0.5 s lag is slower to reach speed than 0.15 s.
+    d = KinematicDynamics(2)
+    d.reset(np.arange(2), np.array([[0.0, 0.0, -10.0], [0.0, 50.0, -10.0]]), np.zeros(2))
+    rng = np.random.default_rng(0)
+    d.randomize(np.array([0]), KinematicRandomization(tau_horizontal_s=(0.5, 0.5)), rng)
+    d.randomize(np.array([1]), KinematicRandomization(tau_horizontal_s=(0.15, 0.15)), rng)
+    d.response["max_acc_horizontal_m_s2"][:] = 5.0
+    for _ in range(3):
+        d.step(np.tile([2.0, 0.0, 0.0], (2, 1)), 0.1, np.ones(2, dtype=bool))
+    assert d.vel_ned[0, 0] < d.vel_ned[1, 0] - 0.3
+    with pytest.raises(ValueError, match="kinematic backend only"):
+        SimConfig(dynamics="jsbsim", dynamics_randomization=ranges)
+    with pytest.raises(ValueError, match="0 < low <= high"):
+        KinematicRandomization(tau_vertical_s=(0.5, 0.1))
+
+
+def test_success_by_goal_altitude_bins():
+    def rec(ep, alt, outcome):
+        return UAVRecord(ep, 0, [0, 0, -5], [3, 0, -alt], outcome, 3.0, 3.0, 2.0)
+
+    split = success_by_goal_altitude([rec(0, 2.0, "arrived"), rec(1, 2.5, "timeout"), rec(2, 4.0, "arrived"),
+                                      rec(3, 9.0, "collision_uav")])
+    assert split["below 3 m"]["uav_episodes"] == 2 and split["below 3 m"]["success_rate"] == 0.5
+    assert split["below 3 m"]["timeout_rate"] == 0.5
+    assert split["3-6 m"]["success_rate"] == 1.0 and split["above 6 m"]["success_rate"] == 0.0
+
+
+def test_flown_protocol_writes_cells_table_and_plot_and_resumes(tmp_path, capsys):
+    out = tmp_path / "flown"
+    argv = ["flown", "--policy", "straight", "--episodes", "1", "--no-jsbsim", "--out", str(out), "--no-progress",
+            "--batch", "1"]
+    assert main(argv) == 0
+    text = (out / "flown.md").read_text()
+    for cell in ("random-small", "random-medium", "random-large", "circle-n8", "obstacles"):
+        assert f"| {cell} | straight |" in text
+    assert "below 3 m" in text and (out / "flown_success.png").stat().st_size > 1000
+    data = json.loads((out / "flown.json").read_text())
+    assert set(data["cells"]["obstacles"]["results"]["straight"]["by_goal_altitude"]) == {"below 3 m", "3-6 m",
+                                                                                         "above 6 m"}
+    assert main(argv) == 0
+    assert "0 computed, 5 reused" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as exc:
+        main(["flown", "--episodes", "0"])
+    assert exc.value.code == 2

@@ -1,0 +1,192 @@
+"""Scale-out on Ray (``python -m sitl.sweep``, ``swarm_test paper --ray``) and the training's progress display.
+
+The Ray tests share one local Ray of 2 CPUs for the whole module (starting one takes
+10-20 s here) and shut it down at the end; they skip, saying why, where Ray is not
+installed. The runs are tiny (16x16 depth, 2 UAVs, 15 updates), so the point is the
+plumbing: every run's directory, the tables, the cells' files, identical numbers with and
+without Ray.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from companion.spec import DEFAULT_ACTION_SPEC, CameraSpec
+from sitl.distributed import ray_available
+from sitl.learn.progress import Progress, format_duration
+
+REPO = Path(__file__).resolve().parents[1]
+
+#: A training run of a few seconds (see tests/test_train.py), validated twice.
+TINY_TRAIN = ["--num-uavs", "2", "--num-worlds", "2", "--image-size", "16", "--hidden-dim", "32", "--batch-size", "16",
+              "--init-steps", "20", "--total-updates", "15", "--eval-every-updates", "10", "--eval-episodes", "2",
+              "--final-eval-episodes", "2", "--max-episode-steps", "40", "--checkpoint-every-s", "1000"]
+
+needs_ray = pytest.mark.skipif(not ray_available(), reason='Ray is not installed (pip install "swarmnav[ray]")')
+
+
+def _env():
+    return {**os.environ, "PYTHONPATH": str(REPO)}
+
+
+@pytest.fixture(scope="module")
+def local_ray():
+    """One local Ray for the module: 2 CPUs, no dashboard; shut down after the last test."""
+    from sitl.distributed import connect
+
+    ray = connect("local", num_cpus=2)
+    try:
+        yield ray
+    finally:
+        ray.shutdown()
+
+
+@pytest.fixture(scope="module")
+def contract_policy(tmp_path_factory) -> Path:
+    """A small untrained policy file (16x16 depth) for the evaluation cells."""
+    from sitl.learn.agent import AgentConfig, SacAeAgent
+    from sitl.learn.export import export_policy
+
+    torch.manual_seed(0)
+    agent = SacAeAgent(AgentConfig(hidden_dim=32), CameraSpec(width=16, height=16), DEFAULT_ACTION_SPEC)
+    path = tmp_path_factory.mktemp("policy") / "policy.pt"
+    export_policy(agent, path, 0.1, {"method": "sac_ae", "note": "untrained test policy"})
+    return path
+
+
+# --------------------------------------------------------------------------- Ray
+
+@needs_ray
+@pytest.mark.timeout(600)
+def test_sweep_of_two_seeds_on_a_local_ray(local_ray, tmp_path, capsys):
+    from sitl.learn.sweep import main
+
+    out = tmp_path / "sweep"
+    code = main(["--seeds", "0,1", "--grid", "actor-lr=1e-3", "--out", str(out), "--", *TINY_TRAIN])
+    printed = capsys.readouterr().out
+    assert code == 0, printed
+    for seed in (0, 1):
+        run_dir = out / f"actor-lr=1e-3-s{seed}"
+        config = json.loads((run_dir / "config.json").read_text())
+        assert config["train"]["seed"] == seed and config["train"]["threads"] == 1  # one CPU, one thread
+        assert config["agent"]["actor_lr"] == 1e-3 and config["train"]["run_dir"] == str(run_dir.resolve())
+        final = json.loads((run_dir / "final_eval.json").read_text())
+        assert final["updates"] == 15 and final["seed"] == seed
+        assert (run_dir / "policy.pt").stat().st_size > 0 and (run_dir / "learning_curve.png").is_file()
+        assert len(json.loads((run_dir / "learning_curve.json").read_text())["eval_success"]) == 1
+    table = json.loads((out / "sweep.json").read_text())
+    assert [r["seed"] for r in table["runs"]] == [0, 1] and all(r["result"] for r in table["runs"])
+    finals = [r["result"]["final_success"]["random"] for r in table["runs"]]
+    stats = table["groups"][0]["final_success"]["random"]
+    assert stats["n"] == 2 and stats["mean"] == pytest.approx(sum(finals) / 2)
+    assert stats["spread"] == pytest.approx(max(finals) - min(finals))
+    assert "| actor-lr=1e-3-s1 | 1 |" in printed and "spread" in (out / "sweep.md").read_text()
+
+    # Started again, the finished runs are reused, not trained again.
+    mtime = (out / "actor-lr=1e-3-s0" / "policy.pt").stat().st_mtime_ns
+    assert main(["--seeds", "0,1", "--grid", "actor-lr=1e-3", "--out", str(out), "--", *TINY_TRAIN]) == 0
+    assert (out / "actor-lr=1e-3-s0" / "policy.pt").stat().st_mtime_ns == mtime
+
+
+@needs_ray
+@pytest.mark.timeout(600)
+def test_paper_cells_on_a_local_ray_equal_the_ones_computed_here(local_ray, tmp_path, contract_policy, capsys):
+    from sitl.eval.cli import main
+
+    common = ["--episodes", "1", "--table-episodes", "2", "--max-steps", "40", "--batch", "1", "--table-n", "3",
+              "--densities", "medium", "--ns", "3", "--radius", "6", "--threads", "1", "--no-progress",
+              "--policies", f"sac_ae={contract_policy},cnn={tmp_path / 'none.pt'},vae={tmp_path / 'none.pt'}"]
+    assert main(["paper", "--out", str(tmp_path / "ray"), "--ray", *common]) == 0
+    # sac_ae, orca and straight in Table II and in Fig. 6; cnn and vae have no policy file.
+    assert "6 computed, 0 reused, 3 not trained" in capsys.readouterr().out
+    assert main(["paper", "--out", str(tmp_path / "here"), *common]) == 0
+    capsys.readouterr()
+    cells = sorted(p.name for p in (tmp_path / "here" / "cells").iterdir())
+    assert cells == sorted(p.name for p in (tmp_path / "ray" / "cells").iterdir()) and len(cells) == 6
+    for name in cells:
+        on_ray, here = (json.loads((tmp_path / d / "cells" / name).read_text()) for d in ("ray", "here"))
+        assert on_ray["summary"] == here["summary"] and on_ray["key"] == here["key"], name
+        assert on_ray["method"] == here["method"], name  # the policy's own path, not the task's copy
+    assert (tmp_path / "ray" / "trajectories" / "fig6-n3-sac_ae.png").is_file()
+    ray_json, here_json = (json.loads((tmp_path / d / "paper.json").read_text()) for d in ("ray", "here"))
+    assert list(ray_json["cells"]) == list(here_json["cells"])
+    assert (tmp_path / "ray" / "paper.md").read_text() == (tmp_path / "here" / "paper.md").read_text()
+    # Started again with --ray, every cell is stored: nothing goes to Ray.
+    assert main(["paper", "--out", str(tmp_path / "ray"), "--ray", *common]) == 0
+    assert "0 computed, 6 reused" in capsys.readouterr().out
+
+
+# --------------------------------------------------------------------------- without Ray
+
+@pytest.mark.parametrize("argv", [
+    ["-m", "sitl.swarm_test", "paper", "--ray", "--episodes", "1"],
+    ["-m", "sitl.sweep", "--seeds", "0", "--", "--total-updates", "1"],
+])
+def test_without_ray_the_commands_say_how_to_install_it(tmp_path, argv):
+    # ``sys.modules["ray"] = None`` makes ``import ray`` fail as it does where Ray is not installed.
+    code = f"import sys, runpy; sys.modules['ray'] = None; sys.argv = {argv[1:]!r}; runpy.run_module({argv[1]!r}, run_name='__main__')"
+    done = subprocess.run([sys.executable, "-c", code, ], capture_output=True, text=True, env=_env(), cwd=tmp_path,
+                          timeout=120)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.strip().splitlines()[-1].endswith('pip install "swarmnav[ray]" (or pip install "ray[client]")')
+    assert "Traceback" not in done.stderr
+
+
+def test_sweep_refuses_what_it_sets_itself():
+    from sitl.learn.sweep import parse_args
+
+    for argv in (["--", "--seed", "3"], ["--grid", "seed=1,2"], ["--grid", "no-such-setting=1"],
+                 ["--seeds", "1,1"], ["--", "--total-updates", "-5"]):
+        with pytest.raises(SystemExit) as stop:
+            parse_args(argv)
+        assert stop.value.code == 2, argv
+
+
+# --------------------------------------------------------------------------- progress and stages
+
+def test_progress_prints_plain_lines_off_a_terminal():
+    stream = io.StringIO()
+    bar = Progress(total=200, initial=50, unit="update", desc="s0 | stage 2: mixed medium", stream=stream, every_s=0.0)
+    assert not bar.tty
+    bar.update(50)
+    bar.set_fields(val="0.85", ep=12)
+    bar.tick()
+    line = stream.getvalue().strip().splitlines()[-1]
+    assert line.startswith("s0 | stage 2: mixed medium: 100/200 updates (50 %)")
+    assert "left; val 0.85, ep 12" in line and "\r" not in stream.getvalue()
+    assert bar.eta_s(elapsed_s=10.0) == pytest.approx(20.0)  # 50 updates took 10 s here; 100 remain
+    assert Progress(10, 0, "update", "x", stream=io.StringIO()).eta_s() == float("inf")
+
+
+def test_format_duration():
+    assert [format_duration(s) for s in (42, 750, 7500, float("inf"))] == ["42 s", "12.5 min", "2 h 05 min", "?"]
+
+
+def test_a_second_stage_continues_the_learning_curve_with_its_boundary(tmp_path):
+    run = lambda *a: subprocess.run([sys.executable, "-m", "sitl.train", *TINY_TRAIN, *a],  # noqa: E731
+                                    capture_output=True, text=True, env=_env(), cwd=tmp_path, timeout=300)
+    first = run("--run-dir", str(tmp_path / "one"), "--total-updates", "60", "--eval-every-updates", "30")  # 65 steps: episodes end
+    assert first.returncode == 0, first.stderr
+    second = run("--run-dir", str(tmp_path / "two"), "--init-from", str(tmp_path / "one"), "--scenario", "circle",
+                 "--actor-lr", "3e-4", "--max-episode-steps", "10")  # short episodes: some end in its 20 steps
+    assert second.returncode == 0, second.stderr
+    # Not a terminal: plain progress lines naming the run and its stage, no carriage returns.
+    assert "two | stage 2: circle medium, lr 0.0003: 15/15 updates (100 %)" in second.stderr
+    assert "\r" not in second.stderr
+    one = json.loads((tmp_path / "one" / "learning_curve.json").read_text())
+    two = json.loads((tmp_path / "two" / "learning_curve.json").read_text())
+    assert [s["name"] for s in two["stages"]] == ["random medium", "stage 2: circle medium, lr 0.0003"]
+    boundary = two["stages"][1]["episode"]
+    assert one["episode"] and boundary == one["episode"][-1] and two["stages"][1]["updates"] == 60
+    assert two["episode"][:len(one["episode"])] == one["episode"]  # stage 1's curve, then stage 2's after it
+    assert min(two["episode"][len(one["episode"]):]) > boundary
+    assert two["eval_episode"][-1] >= boundary and len(two["eval_success"]) == len(one["eval_success"]) + 1 == 3
+    assert (tmp_path / "two" / "learning_curve.png").stat().st_size > 10_000
