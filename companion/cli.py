@@ -227,7 +227,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="hold when more than this fraction of a depth frame's pixels are invalid (0, negative, "
                              f"NaN): a covered, dazzled or dead camera (default {MAX_INVALID_DEPTH_FRACTION:g} for an "
                              "ideal simulated camera; 1, off, for a real sensor's policy (min range > 0), whose open-sky "
-                             "frames are 100 % invalid: docs/companion.md; 1 turns the check off)")
+                             "frames are 100 %% invalid: docs/companion.md; 1 turns the check off)")
     flight.add_argument("--no-camera-sync", action="store_true",
                         help="do not phase-lock the control ticks to depth frame arrivals")
     flight.add_argument("--obstacle-distance", action=argparse.BooleanOptionalAction, default=True,
