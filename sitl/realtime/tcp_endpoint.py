@@ -14,7 +14,8 @@ from __future__ import annotations
 import errno
 import socket
 
-from companion.mavlink_endpoint import mavlink, new_parser, setup_signing
+from companion.mavlink_endpoint import mavlink
+from sitl.realtime.udp_endpoint import SignedCodecs
 
 #: ArduPilot SITL's ports: instance I's SERIAL0 is 5760 + 10*I, SERIAL1 (the companion's) 5762 + 10*I.
 ARDUPILOT_SERIAL0_BASE_PORT = 5760
@@ -23,7 +24,7 @@ ARDUPILOT_INSTANCE_PORT_STEP = 10
 _SEND_TIMEOUT_S = 0.05  # a client that stops reading must not stall the real-time loop for long
 
 
-class MavlinkTcpServer:
+class MavlinkTcpServer(SignedCodecs):
     """One listening TCP port serving one MAVLink client at a time.
 
     Args:
@@ -55,17 +56,7 @@ class MavlinkTcpServer:
         self.refused_unsigned = 0
         self.sent = 0
         self.connections = 0
-        self.mav = self._codec()
-
-    def _codec(self) -> mavlink.MAVLink:
-        mav = new_parser(self, self.src_system, self.src_component)
-        if self.signing_key is not None:
-            setup_signing(mav, self.signing_key, self._refuse_unsigned, self.link_id)
-        return mav
-
-    def _refuse_unsigned(self, _mav, _msg_id: int) -> bool:
-        self.refused_unsigned += 1
-        return False
+        self.mav = self._codec(self)
 
     def fileno(self) -> int:
         return self.listener.fileno()
@@ -103,7 +94,7 @@ class MavlinkTcpServer:
             client.settimeout(_SEND_TIMEOUT_S)  # sendall blocks at most this long
             self.client = client
             self.connections += 1
-            self.mav = self._codec()  # a new stream: no half frame from the last client
+            self.mav = self._codec(self)  # a new stream: no half frame from the last client
 
     def _drop_client(self) -> None:
         if self.client is not None:
@@ -141,7 +132,7 @@ class MavlinkTcpServer:
                         out.append(msg)
                     msg = self.mav.parse_char(b"")
             except Exception:  # noqa: BLE001 - a hostile stream must not take the vehicle down
-                self.mav = self._codec()
+                self.mav = self._codec(self)
         return out
 
     def close(self) -> None:

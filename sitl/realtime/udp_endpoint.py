@@ -39,7 +39,26 @@ class _Peer:
         self.endpoint.send_datagram(buf, self.address)
 
 
-class MavlinkUdpEndpoint:
+class SignedCodecs:
+    """What both simulated-autopilot links (UDP here, TCP in :mod:`sitl.realtime.tcp_endpoint`) share:
+    codecs with our ids that, given a key, sign what they send and refuse (and count) unsigned input.
+
+    The class using it sets ``src_system``, ``src_component``, ``signing_key``, ``link_id`` and
+    ``refused_unsigned``.
+    """
+
+    def _codec(self, file) -> mavlink.MAVLink:
+        mav = new_parser(file, self.src_system, self.src_component)
+        if self.signing_key is not None:
+            setup_signing(mav, self.signing_key, self._refuse_unsigned, self.link_id)
+        return mav
+
+    def _refuse_unsigned(self, _mav, _msg_id: int) -> bool:
+        self.refused_unsigned += 1
+        return False
+
+
+class MavlinkUdpEndpoint(SignedCodecs):
     """One MAVLink 2 UDP socket: sends to a fixed remote and/or answers systems where they talk from.
 
     Args:
@@ -81,15 +100,6 @@ class MavlinkUdpEndpoint:
         return cls(name, ("127.0.0.1", 0), sysid, mavlink.MAV_COMP_ID_AUTOPILOT1, remote=remote,
                    signing_key=signing_key, link_id=link_id)
 
-    def _codec(self, file) -> mavlink.MAVLink:
-        mav = new_parser(file, self.src_system, self.src_component)
-        if self.signing_key is not None:
-            setup_signing(mav, self.signing_key, self._refuse_unsigned, self.link_id)
-        return mav
-
-    def _refuse_unsigned(self, _mav, _msg_id: int) -> bool:
-        self.refused_unsigned += 1
-        return False
 
     def fileno(self) -> int:
         return self.sock.fileno()
