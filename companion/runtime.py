@@ -1142,7 +1142,9 @@ class Companion:
                 return True
             if not current.in_companion_mode:  # the pilot chose another mode meanwhile: theirs, final
                 return True
-            return pending.done and not pending.accepted
+            # Only a refusal ends the wait early: a lost COMMAND_ACK does not mean the switch was lost,
+            # the HEARTBEAT can still show it (seen on a loaded TCP link).
+            return pending.result is not None and not pending.accepted
 
         pump(started + HAND_OVER_TIMEOUT_S, settled)
         current = self.link.heartbeat
