@@ -4,7 +4,7 @@ Two measurements, each a table and, as the last line, one JSON object:
 
 * ``avoid``: eq. 4's avoidance term per step (``w_avoid * max(d_safe - d_min, 0)``) of one UAV
   alone in an empty scene, level, at several altitudes, for the paper camera (32x32, 90 deg,
-  20 m) and the RealSense D435 preset (48x32, 87 x 58 deg, 10 m), with d_min over the whole
+  20 m) and the RealSense D435 preset (32x20, 87 x 58 deg, 10 m), with d_min over the whole
   image (the paper: the ground counts) and over UAVs and obstacles only
   (``RewardConfig.avoid_counts_ground=False``). For scale: full-speed progress pays
   ``w_goal * 0.2 m = 0.6`` per step, arrival 50.

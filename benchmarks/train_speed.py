@@ -5,15 +5,18 @@ Measures, on this machine's CPU (``--threads`` torch threads):
 * one full agent update (critic, actor every 2nd, targets, decoder) at batch 128 from a
   filled replay buffer, for each method and image size given;
 * rollout throughput of the training loop: vectorised environment steps with the actor's
-  sampled actions for the default preset's worlds of 8 UAVs (transitions per second).
+  sampled actions for the preset's worlds of 8 UAVs and its camera (transitions per second;
+  a recipe's first stage).
 
-The last line is one JSON object with ``updates_per_s`` (default ``fast`` preset: sac_ae,
-32x32, its hidden units) and ``env_steps_per_s`` (agent transitions per second while acting),
-plus every configuration measured.
+The last line is one JSON object with ``updates_per_s`` (the preset's configuration: by default
+``flown``, the bundled policy's recipe: sac_ae, the RealSense D435 preset's 32x20 grid, 1024
+hidden units) and ``env_steps_per_s`` (agent transitions per second while acting), plus every
+configuration measured.
 
-Usage: ``python benchmarks/train_speed.py [--sizes 32 64] [--methods sac_ae cnn drq] [--seconds 10] [--smoke]``
-(``--smoke``: the fast preset's configuration only, no warm-up update, a fraction of a second per
-measurement, and the rollouts reuse that agent; what CI runs to keep the script working.)
+Usage: ``python benchmarks/train_speed.py [--preset flown] [--sizes 32 64 32x20 48x32]
+[--methods sac_ae cnn drq] [--seconds 10] [--smoke]`` (a size is a square side or WIDTHxHEIGHT
+of the preset's field of view; ``--smoke``: the preset's configuration only, no warm-up update,
+a fraction of a second per measurement, and the rollouts reuse that agent; what CI runs.)
 """
 
 from __future__ import annotations
@@ -29,34 +32,54 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+import dataclasses  # noqa: E402
+
 from companion.spec import DEFAULT_ACTION_SPEC, STATE_DIM, CameraSpec  # noqa: E402
 from sitl.learn.agent import AgentConfig, SacAeAgent  # noqa: E402
 from sitl.learn.buffer import FrameReplayBuffer  # noqa: E402
-from sitl.learn.config import TrainConfig, make_sim_config, resolve_configs  # noqa: E402
+from sitl.learn.config import PRESETS, TrainConfig, make_sim_config, resolve_configs, training_camera  # noqa: E402
 from sitl.sim.env import SwarmEnv  # noqa: E402
 
 #: Seconds per measurement with --smoke: enough for one timed update on a busy 2-core machine.
 SMOKE_SECONDS = 0.3
 
 
-def make_agent(method: str, size: int, hidden: int) -> SacAeAgent:
-    """A freshly initialised agent of ``method`` for ``size`` x ``size`` depth images."""
-    return SacAeAgent(AgentConfig(method=method, hidden_dim=hidden), CameraSpec(width=size, height=size),
-                      DEFAULT_ACTION_SPEC)
+def parse_grid(text: str) -> tuple[int, int]:
+    """``"32"`` -> (32, 32); ``"32x20"`` -> (32, 20): width and height in pixels."""
+    parts = text.lower().split("x")
+    try:
+        width, height = (int(parts[0]), int(parts[0])) if len(parts) == 1 else (int(parts[0]), int(parts[1]))
+    except (ValueError, IndexError):
+        raise argparse.ArgumentTypeError(f"expected a side or WIDTHxHEIGHT in pixels, got {text!r}") from None
+    if len(parts) > 2 or min(width, height) < 16:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT of at least 16x16 pixels, got {text!r}")
+    return width, height
+
+
+def preset_configs(preset: str) -> tuple[TrainConfig, AgentConfig]:
+    """A preset's configs as its first training run sees them (a recipe: its first stage's overrides)."""
+    stages = PRESETS[preset].get("stages", ())
+    first = stages[0] if stages else None
+    return resolve_configs({"preset": preset, **(first.train if first else {})}, dict(first.agent) if first else {})
+
+
+def make_agent(method: str, camera: CameraSpec, hidden: int, agent_cfg: AgentConfig) -> SacAeAgent:
+    """A freshly initialised agent of ``method`` for ``camera``'s depth images (other values: ``agent_cfg``)."""
+    return SacAeAgent(dataclasses.replace(agent_cfg, method=method, hidden_dim=hidden), camera, DEFAULT_ACTION_SPEC)
 
 
 def update_rate(agent: SacAeAgent, seconds: float, warmup_updates: int = 3) -> float:
     """Agent updates per second at batch 128 from a filled replay buffer (random transitions)."""
     cam = agent.camera
-    size = cam.width
+    height, width = cam.height, cam.width
     action_dim = DEFAULT_ACTION_SPEC.dim
-    buf = FrameReplayBuffer(4096, 64, cam.frames, size, size, STATE_DIM, action_dim)
+    buf = FrameReplayBuffer(4096, 64, cam.frames, height, width, STATE_DIM, action_dim)
     rng = np.random.default_rng(0)
     agents = np.arange(64)
-    buf.start_episodes(agents, rng.uniform(0, 20, (64, size, size)))
+    buf.start_episodes(agents, rng.uniform(0, 20, (64, height, width)))
     for _ in range(40):
         buf.add(agents, rng.normal(size=(64, STATE_DIM)), rng.uniform(-1, 1, (64, action_dim)), rng.normal(size=64),
-                rng.uniform(0, 20, (64, size, size)), rng.normal(size=(64, STATE_DIM)), np.zeros(64, bool))
+                rng.uniform(0, 20, (64, height, width)), rng.normal(size=(64, STATE_DIM)), np.zeros(64, bool))
     for _ in range(warmup_updates):
         agent.update(buf.sample(128, agent.device))
     count, started = 0, time.perf_counter()
@@ -66,12 +89,12 @@ def update_rate(agent: SacAeAgent, seconds: float, warmup_updates: int = 3) -> f
     return count / (time.perf_counter() - started)
 
 
-def rollout_rate(seconds: float, agent: SacAeAgent | None = None) -> float:
-    """Agent transitions per second while the default preset's worlds roll out with sampled actions.
+def rollout_rate(seconds: float, agent: SacAeAgent | None = None, cfg: TrainConfig | None = None) -> float:
+    """Agent transitions per second while ``cfg``'s worlds (default: the fast preset's) roll out with sampled actions.
 
-    ``agent`` (default: a fresh one of the default size) must see the default preset's camera.
+    ``agent`` (default: a fresh one) must see ``cfg``'s camera.
     """
-    cfg = TrainConfig()
+    cfg = cfg or TrainConfig()
     sim = make_sim_config(cfg, cfg.num_worlds)
     env = SwarmEnv(sim, seed=0)
     agent = agent or SacAeAgent(AgentConfig(), sim.camera, DEFAULT_ACTION_SPEC)
@@ -87,25 +110,40 @@ def rollout_rate(seconds: float, agent: SacAeAgent | None = None) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--sizes", type=int, nargs="+", default=None, help="image sides in pixels (default 32 64)")
+    parser.add_argument("--preset", default="flown", choices=sorted(PRESETS),
+                        help="the headline configuration and the rollouts' scenes and camera (default flown: the "
+                             "bundled policy's recipe)")
+    parser.add_argument("--sizes", type=parse_grid, nargs="+", default=None,
+                        help="image grids, a side or WIDTHxHEIGHT, in the preset camera's field of view "
+                             "(default: the preset's grid and 32, 64)")
     parser.add_argument("--methods", nargs="+", default=None, help="learning methods (default sac_ae cnn drq)")
     parser.add_argument("--hidden", type=int, nargs="+", default=None, help="hidden units (default 1024 256)")
     parser.add_argument("--seconds", type=float, default=None, help="seconds per measurement (default 10)")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--smoke", action="store_true",
-                        help="CI check: the fast preset's configuration only, no warm-up, a fraction of a second "
+                        help="CI check: the preset's configuration only, no warm-up, a fraction of a second "
                              "per measurement")
     args = parser.parse_args()
-    # The headline configuration: the default (fast) preset's method, image size and hidden units.
-    cfg, agent_cfg = resolve_configs({}, {})
-    headline = f"{agent_cfg.method}_{cfg.image_size}px_h{agent_cfg.hidden_dim}"
+    cfg, agent_cfg = preset_configs(args.preset)
+    camera = training_camera(cfg)
+    preset_grid = (camera.width, camera.height)
+
+    def grid_camera(grid: tuple[int, int]) -> CameraSpec:
+        """The preset's camera (field of view, range) sampled on ``grid``."""
+        return dataclasses.replace(camera, width=grid[0], height=grid[1])
+
+    def name(method: str, grid: tuple[int, int], hidden: int) -> str:
+        return f"{method}_{grid[0]}x{grid[1]}px_h{hidden}"
+
+    headline = name(agent_cfg.method, preset_grid, agent_cfg.hidden_dim)
     if args.smoke:
-        sizes = args.sizes or [cfg.image_size]
+        grids = args.sizes or [preset_grid]
         methods = args.methods or [agent_cfg.method]
         hiddens = args.hidden or [agent_cfg.hidden_dim]
         seconds = SMOKE_SECONDS if args.seconds is None else args.seconds
     else:
-        sizes, methods = args.sizes or [32, 64], args.methods or ["sac_ae", "cnn", "drq"]
+        grids = args.sizes or list(dict.fromkeys([preset_grid, (32, 32), (64, 64)]))
+        methods = args.methods or ["sac_ae", "cnn", "drq"]
         hiddens = args.hidden or [1024, 256]
         seconds = 10.0 if args.seconds is None else args.seconds
     if seconds <= 0:
@@ -113,21 +151,23 @@ def main() -> None:
     torch.set_num_threads(args.threads)
 
     rates, headline_agent = {}, None
-    for size in sizes:
+    for grid in grids:
         for method in methods:
             for hidden in hiddens:
-                agent = make_agent(method, size, hidden)
-                if args.smoke and f"{method}_{size}px_h{hidden}" == headline:
-                    headline_agent = agent  # the smoke run's rollouts reuse it: one fewer initialisation
+                agent = make_agent(method, grid_camera(grid), hidden, agent_cfg)
+                key = name(method, grid, hidden)
+                if key == headline:
+                    headline_agent = agent  # the rollouts reuse it: one fewer initialisation
                 rate = update_rate(agent, seconds, warmup_updates=0 if args.smoke else 3)
-                rates[f"{method}_{size}px_h{hidden}"] = round(rate, 2)
-                print(f"{method:7s} {size}x{size} hidden {hidden:4d}: {rate:6.2f} updates/s "
+                rates[key] = round(rate, 2)
+                print(f"{method:7s} {grid[0]}x{grid[1]} hidden {hidden:4d}: {rate:6.2f} updates/s "
                       f"({1000 / rate:6.1f} ms/update)", flush=True)
-    env_rate = rollout_rate(seconds, headline_agent)
-    print(f"rollouts ({cfg.num_worlds} worlds x {cfg.num_uavs} UAVs, actor sampling): {env_rate:.0f} transitions/s",
-          flush=True)
-    print(json.dumps({"benchmark": "train_speed", "threads": args.threads, "updates_per_s": rates.get(headline),
-                      "updates_per_s_config": headline,
+    env_rate = rollout_rate(seconds, headline_agent or make_agent(agent_cfg.method, camera, agent_cfg.hidden_dim,
+                                                                   agent_cfg), cfg)
+    print(f"rollouts of preset {args.preset} ({cfg.num_worlds} worlds x {cfg.num_uavs} UAVs, {cfg.scenario} scenes, "
+          f"actor sampling): {env_rate:.0f} transitions/s", flush=True)
+    print(json.dumps({"benchmark": "train_speed", "preset": args.preset, "threads": args.threads,
+                      "updates_per_s": rates.get(headline), "updates_per_s_config": headline,
                       "env_steps_per_s": round(env_rate), "updates_per_s_by_config": rates}))
 
 

@@ -175,17 +175,18 @@ class CameraSpec:
 MAX_MOUNT_PITCH_DEG = 45.0
 
 #: Intel RealSense D435 (and D455: same 87 x 58 deg depth field of view) as the policy sees it:
-#: 87 x 58 deg (datasheet), min-pooled to 48 x 32 pixels (chosen with
-#: ``benchmarks/camera_resolution.py``, docs/simulator.md), level mount, usable range
+#: 87 x 58 deg (datasheet), min-pooled to 32 x 20 pixels: ~2.7 deg per pixel, the angular
+#: resolution of the paper camera at 32x32, and a SAC+AE update 2.7x cheaper than at 48x32
+#: (``benchmarks/camera_resolution.py``, ``benchmarks/train_speed.py``; docs/simulator.md), level mount, usable range
 #: 0.2-10 m (Min-Z ~0.2 m at 848x480; depth error ~2 % at 2 m growing with z^2, so beyond
 #: ~10 m the stereo match is noise: Intel D400 series datasheet and product page).
-REALSENSE_D435 = CameraSpec(width=48, height=32, hfov_deg=87.0, vfov_deg=58.0, max_range_m=10.0,
+REALSENSE_D435 = CameraSpec(width=32, height=20, hfov_deg=87.0, vfov_deg=58.0, max_range_m=10.0,
                             min_range_m=0.2, frames=3, mount_pitch_deg=0.0)
 #: The image a simulated D435 sends to the companion (``sitl.vehicle --camera realsense_d435``):
 #: square pixels at 16:9 like the sensor's 848x480 / 1280x720 modes, downscaled to 160x90 to fit one
 #: UDP datagram, at the ~90 deg horizontal FOV a typical unit's intrinsics give (fx ~ width / 2;
 #: the datasheet's 87 x 58 deg is the guaranteed field, 90 x 58.7 deg what units deliver). The
-#: companion crops it to the policy's 87 x 58 deg and min-pools it to 48x32.
+#: companion crops it to the policy's 87 x 58 deg and min-pools it to 32x20.
 REALSENSE_D435_SENSOR = CameraSpec(width=160, height=90, hfov_deg=90.0, max_range_m=10.0, min_range_m=0.2)
 #: The camera presets by name (``--camera NAME`` in sitl's command lines). ``paper``: the
 #: paper's 90 x 90 deg square camera with a 20 m range, the version-1 policy file's camera.

@@ -182,7 +182,7 @@ def test_a_simulated_d435_image_becomes_what_the_policy_was_trained_on():
     sensor = DepthCamera(REALSENSE_D435_SENSOR, 2).render(pos, np.zeros(2), 2)[0]
     converted = DepthConverter(REALSENSE_D435, max_invalid_fraction=1.0).convert(sensor, REALSENSE_D435_SENSOR.hfov_deg)
     trained = DepthCamera(REALSENSE_D435, 4).render(pos, np.zeros(2), 2)[0]
-    assert converted.shape == trained.shape == (32, 48)
+    assert converted.shape == trained.shape == (REALSENSE_D435.height, REALSENSE_D435.width)
     assert converted.min() == pytest.approx(trained.min(), abs=0.05)  # the UAV, ~4.7 m
     # Same picture: the ground rows and the UAV's pixels agree to within a pixel's footprint.
     assert np.mean(np.abs(converted - trained) < 0.5) > 0.9

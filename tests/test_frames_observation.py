@@ -166,4 +166,5 @@ def test_blinded_check_default_is_off_for_a_real_sensor_only():
     assert default_max_invalid_fraction(CameraSpec()) == MAX_INVALID_DEPTH_FRACTION
     assert default_max_invalid_fraction(REALSENSE_D435) == 1.0
     # Off means an all-invalid frame (open sky above the sensor's range) is not a fault.
-    validate_depth_frame(np.zeros((32, 48), np.float32), REALSENSE_D435, max_invalid_fraction=1.0)
+    validate_depth_frame(np.zeros((REALSENSE_D435.height, REALSENSE_D435.width), np.float32), REALSENSE_D435,
+                         max_invalid_fraction=1.0)

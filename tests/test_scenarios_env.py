@@ -170,6 +170,6 @@ def test_a_noisy_real_camera_reaches_the_policy_through_the_companion_conversion
     for _ in range(5):
         obs, *_ = env.step(straight_to_goal(obs.state))
     depth = obs.depth
-    assert depth.shape == (32, 3, 32, 48)
+    assert depth.shape == (32, 3, REALSENSE_D435.height, REALSENSE_D435.width)
     assert depth.min() > 0 and depth.max() == REALSENSE_D435.max_range_m  # no zeros: holes read max range
     assert 0.3 < np.mean(depth[:, -1] == REALSENSE_D435.max_range_m) < 1.0  # holes and sky, but not only

@@ -63,7 +63,7 @@ class TrainConfig:
     num_uavs: int = _param(8, "UAVs per world")
     num_worlds: int = _param(4, "worlds stepped together (vectorised rollouts)")
     image_size: int = _param(32, "depth image side in pixels (the paper camera: square, 90 deg FOV)")
-    camera: str = _param("paper", f"camera preset: {', '.join(CAMERA_PRESETS)} (realsense_d435: 87x58 deg, 48x32 px, "
+    camera: str = _param("paper", f"camera preset: {', '.join(CAMERA_PRESETS)} (realsense_d435: 87x58 deg, 32x20 px, "
                                   "0.2-10 m; docs/simulator.md)")
     camera_noise: bool = _param(False, "train with the stereo noise model (z^2 error, holes reported as 0)")
     mount_pitch_jitter_deg: float = _param(0.0, "camera mount pitch drawn per episode within +-deg of the mount")
