@@ -12,6 +12,7 @@ stream parser per connection, with the companion's verify-first signature check.
 from __future__ import annotations
 
 import errno
+import select
 import socket
 
 from companion.mavlink_endpoint import mavlink
@@ -22,6 +23,9 @@ ARDUPILOT_SERIAL0_BASE_PORT = 5760
 ARDUPILOT_SERIAL1_BASE_PORT = 5762
 ARDUPILOT_INSTANCE_PORT_STEP = 10
 _SEND_TIMEOUT_S = 0.05  # a client that stops reading must not stall the real-time loop for long
+#: Reads per :meth:`MavlinkTcpServer.receive` call at most: a client streaming faster than we read
+#: must not keep the real-time loop inside one receive.
+_MAX_READS_PER_RECEIVE = 16
 
 
 class MavlinkTcpServer(SignedCodecs):
@@ -110,9 +114,14 @@ class MavlinkTcpServer(SignedCodecs):
         out: list = []
         if self.client is None:
             return out
-        while True:
+        for _ in range(_MAX_READS_PER_RECEIVE):
+            # The client socket has a timeout (for sendall), and CPython waits for readability up to
+            # that timeout before any recv, MSG_DONTWAIT or not: a client sending every <= 50 ms
+            # (the companion's 20 Hz exit hold) kept this loop reading for seconds. Poll first.
+            if not select.select([self.client], [], [], 0.0)[0]:
+                break
             try:
-                data = self.client.recv(65536, socket.MSG_DONTWAIT)
+                data = self.client.recv(65536)
             except (BlockingIOError, InterruptedError, socket.timeout):
                 break
             except OSError as err:
