@@ -97,6 +97,14 @@ MIN_INFERENCE_TIME_S = 0.001
 #: just before closing were lost with the TCP link on ArduPilot; 0.5 s of them stopped it.
 EXIT_HOLD_STREAM_S = 0.5
 EXIT_HOLD_RATE_HZ = 20.0
+#: Before the hold mode is requested the position hold is streamed on until the vehicle has
+#: settled on it (within EXIT_SETTLED_DISTANCE_M of the point and slower than EXIT_SETTLED_SPEED_M_S),
+#: at most EXIT_SETTLE_MAX_S. Why: ArduCopter's BRAKE limits its position correction to the speed
+#: it was entered at (mode_brake.cpp: set_correction_speed_accel_NE_cm(current speed)), so entered
+#: while still decelerating it crept 1.9-2.2 m from the hold point (real ArduCopter SITL, issue 18).
+EXIT_SETTLED_DISTANCE_M = 0.3
+EXIT_SETTLED_SPEED_M_S = 0.1
+EXIT_SETTLE_MAX_S = 5.0
 #: How long to wait for the autopilot's HEARTBEAT to show the hold mode after asking for it:
 #: HEARTBEAT comes at 1 Hz and the command may need a retry (1.5-1.9 s measured unloaded),
 #: so 5 s leaves room for a busy link or computer; the hold is streamed meanwhile.
@@ -1121,7 +1129,24 @@ class Companion:
         pump(time.monotonic() + EXIT_HOLD_STREAM_S)
         if not in_control:
             return
+        if point is not None:
+            started = time.monotonic()
+            settled = pump(started + EXIT_SETTLE_MAX_S, lambda: self._settled_at(point[0]))
+            odom = self.link.odometry
+            self._event("hold_settled" if settled else "hold_not_settled",
+                        f"{'settled' if settled else 'not settled'} on the position hold after "
+                        f"{time.monotonic() - started:.2f} s", level="info" if settled else "warning",
+                        distance_m=None if odom is None else round(float(np.linalg.norm(odom.pos_ned - point[0])), 3),
+                        speed_m_s=None if odom is None else round(float(np.linalg.norm(odom.vel_ned)), 3))
         self._hand_over(pump)
+
+    def _settled_at(self, point_ned: np.ndarray) -> bool:
+        """The vehicle (fresh odometry) is within EXIT_SETTLED_DISTANCE_M of ``point_ned`` and slower than EXIT_SETTLED_SPEED_M_S."""
+        odom = self.link.odometry
+        if odom is None or self.link.odometry_age_s(time.monotonic()) > self.stale_s:
+            return False
+        return (float(np.linalg.norm(odom.pos_ned - point_ned)) <= EXIT_SETTLED_DISTANCE_M
+                and float(np.linalg.norm(odom.vel_ned)) <= EXIT_SETTLED_SPEED_M_S)
 
     def _hand_over(self, pump) -> None:
         """Ask for the hold mode while streaming the hold; report whether the autopilot got there."""
