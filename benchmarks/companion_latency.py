@@ -122,12 +122,11 @@ def fly(policy_path: Path, workdir: Path, seconds: float, warmup: float, camera_
             raise RuntimeError("the companion never engaged")
         time.sleep(warmup + seconds)
     finally:
-        for proc in (companion, vehicle):
+        for proc in (companion, vehicle):  # the companion first: it stops and hands over before exiting
             if proc.poll() is None:
                 os.killpg(proc.pid, signal.SIGTERM)
-        for proc in (companion, vehicle):
             try:
-                proc.wait(timeout=10)
+                proc.wait(timeout=20)
             except subprocess.TimeoutExpired:
                 os.killpg(proc.pid, signal.SIGKILL)
     return [json.loads(line) for line in log.read_text().splitlines() if line.strip()]

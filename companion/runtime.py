@@ -92,12 +92,14 @@ from companion.spec import STATE_DIM, goal_problem
 #: arrive in time); the step holds instead.
 MIN_INFERENCE_TIME_S = 0.001
 
-#: Leaving on purpose while flying: a position hold is streamed this long (at EXIT_HOLD_RATE_HZ)
+#: Leaving on purpose while flying: a hold (zero velocity, or a position target at the goal when
+#: holding there) is streamed at least this long (at EXIT_HOLD_RATE_HZ)
 #: before the hold mode is requested and the link closed. Issue 18: zero setpoints sent only
 #: just before closing were lost with the TCP link on ArduPilot; 0.5 s of them stopped it.
 EXIT_HOLD_STREAM_S = 0.5
 EXIT_HOLD_RATE_HZ = 20.0
-#: Before the hold mode is requested the position hold is streamed on until the vehicle has
+#: Before the hold mode is requested the vehicle is stopped (zero velocity until slower than
+#: EXIT_SETTLED_SPEED_M_S) and a position hold where it stopped (or at the goal) streamed until it has
 #: settled on it (within EXIT_SETTLED_DISTANCE_M of the point and slower than EXIT_SETTLED_SPEED_M_S),
 #: at most EXIT_SETTLE_MAX_S. Why: ArduCopter's BRAKE limits its position correction to the speed
 #: it was entered at (mode_brake.cpp: set_correction_speed_accel_NE_cm(current speed)), so entered
@@ -1069,25 +1071,22 @@ class Companion:
     def _leave(self) -> None:
         """Leave on purpose without leaving the vehicle to a failsafe (issue 18, items 1 and 8).
 
-        While streaming: a hold for ``EXIT_HOLD_STREAM_S`` (a position target where the vehicle
-        is, or at the goal when holding there; zero velocity without odometry), so the last
-        setpoints cannot be the ones lost when the link closes. Then, if the companion flies
-        the vehicle, its hold mode (:data:`HOLD_MODES`) is requested, the hold streamed on until
-        the HEARTBEAT shows it (at most ``HAND_OVER_TIMEOUT_S``), and the result reported (log
-        and STATUSTEXT). A pilot's takeover is final: then nothing is sent or requested.
+        While streaming: a hold for ``EXIT_HOLD_STREAM_S``, so the last setpoints cannot be the
+        ones lost when the link closes — a position target at the goal when holding there,
+        otherwise zero velocity (the vehicle stops where its braking takes it, instead of flying
+        back to where the exit began). Then, if the companion flies the vehicle, the stop is
+        awaited and a position target streamed where it stopped until the vehicle has settled
+        on it (:meth:`_settled_at`, at most ``EXIT_SETTLE_MAX_S``); then its hold mode
+        (:data:`HOLD_MODES`) is requested, the hold streamed on until the HEARTBEAT shows it (at
+        most ``HAND_OVER_TIMEOUT_S``), and the result reported (log and STATUSTEXT). A pilot's
+        takeover is final: then nothing is sent or requested.
         """
         now = time.monotonic()
         hb = self.link.heartbeat
         if hb is None or self.taken_over or self.phase not in _STREAMING | {FlightPhase.TAKING_OFF}:
             return
         in_control = self._in_control(now)
-        odom = self.link.odometry
-        if self._holding_point():
-            point = self._hold_point
-        elif odom is not None and self.link.odometry_age_s(now) <= self.stale_s and self.phase is not FlightPhase.TAKING_OFF:
-            point = (odom.pos_ned.copy(), float(odom.yaw_rad))
-        else:
-            point = None
+        point = self._hold_point if self._holding_point() else None  # None: zero velocity
 
         def send_hold() -> None:
             try:
@@ -1122,31 +1121,44 @@ class Companion:
                 else:
                     time.sleep(min(wait, 0.005))
 
-        what = "a position hold" if point is not None else "zero velocity"
+        what = "a position hold at the goal" if point is not None else "zero velocity"
         self._event("leaving", f"leaving: streaming {what} for {EXIT_HOLD_STREAM_S:g} s"
-                    + (f", then handing over to {HOLD_MODES[hb.kind]}" if in_control else ""),
+                    + (f", then a position hold until settled, then handing over to {HOLD_MODES[hb.kind]}"
+                       if in_control else ""),
                     hold_point_ned=None if point is None else point[0], in_control=in_control)
-        pump(time.monotonic() + EXIT_HOLD_STREAM_S)
+        started = time.monotonic()
+        pump(started + EXIT_HOLD_STREAM_S)
         if not in_control:
             return
+        if point is None:  # stopping: wait for the stop, then hold where it stopped
+            pump(started + EXIT_SETTLE_MAX_S, lambda: self._settled_at(None) or self._odometry_lost())
+            odom = self.link.odometry
+            if odom is not None and self.link.odometry_age_s(time.monotonic()) <= self.stale_s:
+                point = (odom.pos_ned.copy(), float(odom.yaw_rad))
         if point is not None:
-            started = time.monotonic()
-            settled = pump(started + EXIT_SETTLE_MAX_S, lambda: self._settled_at(point[0]))
+            pump(started + EXIT_SETTLE_MAX_S, lambda: self._settled_at(point[0]) or self._odometry_lost())
+            settled = self._settled_at(point[0])
             odom = self.link.odometry
             self._event("hold_settled" if settled else "hold_not_settled",
-                        f"{'settled' if settled else 'not settled'} on the position hold after "
-                        f"{time.monotonic() - started:.2f} s", level="info" if settled else "warning",
+                        f"{'settled' if settled else 'not settled'} on the position hold "
+                        f"{time.monotonic() - started:.2f} s after leaving began", level="info" if settled else "warning",
+                        hold_point_ned=point[0],
                         distance_m=None if odom is None else round(float(np.linalg.norm(odom.pos_ned - point[0])), 3),
                         speed_m_s=None if odom is None else round(float(np.linalg.norm(odom.vel_ned)), 3))
         self._hand_over(pump)
 
-    def _settled_at(self, point_ned: np.ndarray) -> bool:
-        """The vehicle (fresh odometry) is within EXIT_SETTLED_DISTANCE_M of ``point_ned`` and slower than EXIT_SETTLED_SPEED_M_S."""
+    def _odometry_lost(self) -> bool:
+        """No odometry fresher than the staleness limit: nothing to wait for while leaving."""
+        return self.link.odometry is None or self.link.odometry_age_s(time.monotonic()) > self.stale_s
+
+    def _settled_at(self, point_ned: np.ndarray | None) -> bool:
+        """The vehicle (fresh odometry) is slower than EXIT_SETTLED_SPEED_M_S and, given a point,
+        within EXIT_SETTLED_DISTANCE_M of ``point_ned``."""
         odom = self.link.odometry
         if odom is None or self.link.odometry_age_s(time.monotonic()) > self.stale_s:
             return False
-        return (float(np.linalg.norm(odom.pos_ned - point_ned)) <= EXIT_SETTLED_DISTANCE_M
-                and float(np.linalg.norm(odom.vel_ned)) <= EXIT_SETTLED_SPEED_M_S)
+        near = point_ned is None or float(np.linalg.norm(odom.pos_ned - point_ned)) <= EXIT_SETTLED_DISTANCE_M
+        return near and float(np.linalg.norm(odom.vel_ned)) <= EXIT_SETTLED_SPEED_M_S
 
     def _hand_over(self, pump) -> None:
         """Ask for the hold mode while streaming the hold; report whether the autopilot got there."""
@@ -1165,6 +1177,8 @@ class Companion:
             current = self.link.heartbeat
             if current.mode == mode:
                 return True
+            if self.link.heartbeat_age_s(time.monotonic()) > self.config.link_timeout_s:
+                return True  # the autopilot is gone: nobody to hand over to (reported as not confirmed)
             if not current.in_companion_mode:  # the pilot chose another mode meanwhile: theirs, final
                 return True
             # Only a refusal ends the wait early: a lost COMMAND_ACK does not mean the switch was lost,

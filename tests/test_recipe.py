@@ -86,3 +86,16 @@ def test_train_help_lists_a_recipes_stages():
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 0
     assert "recipe of 4 stages" in out.stdout and "stage 4 'mixed15'" in out.stdout
+
+
+def test_a_stage_is_validated_only_on_the_scenes_it_trains_on():
+    """The flown recipe's first stage has no circles: scoring it on circles picked its 2,000-update snapshot of 8,000."""
+    from sitl.learn.config import evaluation_scenarios
+
+    def scenes(**train):
+        return evaluation_scenarios(resolve_configs({"scenario": "mixed", **train}, {})[0])
+
+    assert scenes(circle_fraction=0.0, obstacle_fraction=0.2) == ("random", "obstacles")
+    assert scenes(circle_fraction=0.3, obstacle_fraction=0.2) == ("random", "circle", "obstacles")
+    assert scenes(circle_fraction=0.5) == ("random", "circle")
+    assert evaluation_scenarios(resolve_configs({"scenario": "circle"}, {})[0]) == ("circle",)

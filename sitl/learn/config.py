@@ -268,7 +268,11 @@ def training_camera(cfg: TrainConfig) -> CameraSpec:
 
 
 def evaluation_scenarios(cfg: TrainConfig) -> tuple[str, ...]:
-    """The scenarios a run is evaluated on: its own, or every part of a mixed one."""
+    """The scenarios a run is validated on (and its snapshots selected by): its own, or every part
+    of a mixed one that it trains on. A mix without circles is not scored on circles: in the flown
+    recipe's first stage the untrained circle score fell from 0.48 to 0.26 while random and
+    obstacles rose, and the mean picked the 2,000-update snapshot of 8,000."""
     if cfg.scenario != "mixed":
         return (cfg.scenario,)
-    return ("random", "circle") + (("obstacles",) if cfg.obstacle_fraction > 0 else ())
+    return (("random",) + (("circle",) if cfg.circle_fraction > 0 else ())
+            + (("obstacles",) if cfg.obstacle_fraction > 0 else ()))
