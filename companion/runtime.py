@@ -1104,6 +1104,7 @@ class Companion:
                 now_s = time.monotonic()
                 self._read_link(now_s)
                 self.link.service_commands(now_s)
+                self.notifier.watchdog(now_s)  # leaving can take ~11 s; systemd's WatchdogSec is 2 s
                 if done():
                     return True
                 if now_s >= until_s:
