@@ -1086,12 +1086,26 @@ class Companion:
         if hb is None or self.taken_over or self.phase not in _STREAMING | {FlightPhase.TAKING_OFF}:
             return
         in_control = self._in_control(now)
-        point = self._hold_point if self._holding_point() else None  # None: zero velocity
+        # ArduCopter: stop (zero velocity), then hold where it stopped until settled, then BRAKE
+        # (EXIT_SETTLE_MAX_S). PX4's AUTO.LOITER brakes from any speed by itself (it holds the
+        # braking point it computes on entry), so PX4 gets a position hold where the vehicle is
+        # and the hand-over at once: on real PX4 SIH that moved 0.75 m after the stop, the settling
+        # sequence 1.35 m.
+        settle = hb.kind is AutopilotKind.ARDUPILOT
+        odom = self.link.odometry
+        if self._holding_point():
+            point = self._hold_point
+        elif (not settle and odom is not None and self.link.odometry_age_s(now) <= self.stale_s
+              and self.phase is not FlightPhase.TAKING_OFF):
+            point = (odom.pos_ned.copy(), float(odom.yaw_rad))
+        else:
+            point = None  # zero velocity
+        hold = [point]  # what send_hold streams; _settle replaces it with where the vehicle stopped
 
         def send_hold() -> None:
             try:
-                if point is not None:
-                    self.link.send_position_target(*point)
+                if hold[0] is not None:
+                    self.link.send_position_target(*hold[0])
                 else:
                     self.link.send_velocity_setpoint(0.0, 0.0, 0.0)
             except OSError:
@@ -1122,20 +1136,29 @@ class Companion:
                 else:
                     time.sleep(min(wait, 0.005))
 
-        what = "a position hold at the goal" if point is not None else "zero velocity"
+        what = "zero velocity" if point is None else "a position hold at the goal" if self._holding_point() else "a position hold"
         self._event("leaving", f"leaving: streaming {what} for {EXIT_HOLD_STREAM_S:g} s"
-                    + (f", then a position hold until settled, then handing over to {HOLD_MODES[hb.kind]}"
-                       if in_control else ""),
+                    + (", then a position hold until settled" if in_control and settle else "")
+                    + (f", then handing over to {HOLD_MODES[hb.kind]}" if in_control else ""),
                     hold_point_ned=None if point is None else point[0], in_control=in_control)
         started = time.monotonic()
         pump(started + EXIT_HOLD_STREAM_S)
         if not in_control:
             return
-        if point is None:  # stopping: wait for the stop, then hold where it stopped
+        if settle:
+            self._settle(pump, hold, started)
+        self._hand_over(pump)
+
+    def _settle(self, pump, hold: list, started: float) -> None:
+        """ArduCopter, before BRAKE: wait for the stop, then hold a position target where it stopped
+        (``hold[0]`` is what the pump streams: None, zero velocity, or the goal's hold) until the
+        vehicle has settled on it, at most EXIT_SETTLE_MAX_S after ``started``."""
+        if hold[0] is None:  # stopping: wait for the stop, then hold where it stopped
             pump(started + EXIT_SETTLE_MAX_S, lambda: self._settled_at(None) or self._odometry_lost())
             odom = self.link.odometry
             if odom is not None and self.link.odometry_age_s(time.monotonic()) <= self.stale_s:
-                point = (odom.pos_ned.copy(), float(odom.yaw_rad))
+                hold[0] = (odom.pos_ned.copy(), float(odom.yaw_rad))
+        point = hold[0]
         if point is not None:
             pump(started + EXIT_SETTLE_MAX_S, lambda: self._settled_at(point[0]) or self._odometry_lost())
             settled = self._settled_at(point[0])
@@ -1146,7 +1169,6 @@ class Companion:
                         hold_point_ned=point[0],
                         distance_m=None if odom is None else round(float(np.linalg.norm(odom.pos_ned - point[0])), 3),
                         speed_m_s=None if odom is None else round(float(np.linalg.norm(odom.vel_ned)), 3))
-        self._hand_over(pump)
 
     def _odometry_lost(self) -> bool:
         """No odometry fresher than the staleness limit: nothing to wait for while leaving."""
