@@ -24,7 +24,7 @@ import torch  # noqa: E402
 from torch import nn  # noqa: E402
 
 from companion.policy import build_metadata, save_policy  # noqa: E402
-from companion.spec import ActionSpec, CameraSpec  # noqa: E402
+from companion.spec import REALSENSE_D435, ActionSpec, CameraSpec  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 CONTROL_PERIOD_S = 0.1
@@ -63,8 +63,9 @@ class GoalSeeker(nn.Module):
 
 def make_policy(path: Path, *, period_s: float = CONTROL_PERIOD_S, camera: CameraSpec | None = None,
                 nan_above_speed: float = 0.0, brake_depth_m: float = 0.0) -> Path:
-    """Save a contract-following TorchScript test policy at ``path``."""
-    camera = camera or CameraSpec()
+    """Save a contract-following TorchScript test policy at ``path`` (default camera: the D435 preset,
+    what ``sitl.vehicle`` carries by default)."""
+    camera = camera or REALSENSE_D435
     action = ActionSpec()
     module = GoalSeeker(list(action.low), list(action.high), nan_above_speed, brake_depth_m)
     provenance = {"method": "test goal seeker", "scenario": "none", "steps": 0, "wall_time_s": 0.0,

@@ -289,6 +289,7 @@ def test_a_dropped_camera_frame_is_never_stacked_twice(tmp_path):
 
     with Processes(tmp_path) as procs:
         flight = Flight(procs, tmp_path, "px4", "udp")
+        flight.policy = make_policy(tmp_path / "paper_policy.pt", camera=camera)  # what our camera sends
         unused_depth = free_udp_ports(1)[0]  # the vehicle's own camera goes nowhere: ours feeds the companion
         sender = threading.Thread(target=dropping_camera, args=(flight.depth_port,), daemon=True)
         sender.start()

@@ -397,13 +397,13 @@ def _start_landed(rig: Rig, tmp) -> None:
 def _start_blind(rig: Rig, tmp) -> None:
     (elsewhere,) = free_udp_ports(1)  # the vehicle's own frames go nowhere: the test is the camera
     rig.start_vehicle("--airborne", "--start", "0,0,-3", "--depth-port", str(elsewhere))
-    rig.feeder = CameraFeeder(rig.depth_port)
-    rig.start_companion(make_policy(tmp / "policy.pt"), "--goal", "500,0,-3", "--arm", "--takeoff", "3",
+    rig.feeder = CameraFeeder(rig.depth_port)  # the paper camera's frames: a policy for that camera
+    rig.start_companion(make_policy(tmp / "policy.pt", camera=CameraSpec()), "--goal", "500,0,-3", "--arm", "--takeoff", "3",
                         "--exit-on-arrival", "--timeout", "150")
 
 
 def _start_slow(rig: Rig, tmp) -> None:
-    rig.start_vehicle("--airborne", "--start", "0,0,-3")
+    rig.start_vehicle("--airborne", "--start", "0,0,-3", "--camera", "paper")  # the slow policy's camera
     rig.start_companion(_slow_policy(tmp / "slow.pt"), "--goal", "500,0,-3", "--arm", "--takeoff", "3",
                         "--exit-on-arrival", "--timeout", "150")
 

@@ -32,6 +32,9 @@ from sitl.cli_args import (
 from sitl.realtime.depth_transport import DepthFrameSender
 
 DEFAULT_CAMERA_HZ = 30.0
+#: The sensor a simulated vehicle carries unless ``--camera`` says otherwise: the bundled policy's
+#: (models/policy.pt is trained for a RealSense D435; ``--camera paper`` feeds the paper camera's policies).
+DEFAULT_SENSOR = "realsense_d435"
 DEFAULT_SUPERSAMPLE = 4
 
 
@@ -59,20 +62,22 @@ def add_camera_arguments(parser: argparse.ArgumentParser, frame: str = "") -> No
 
     ``frame`` names the obstacles' frame in the help (``"world"`` for the depth bridge).
     """
-    spec = DEFAULT_CAMERA_SPEC
-    parser.add_argument("--camera", type=camera_preset, default="paper",
-                        help="the depth sensor each vehicle carries: paper (the policy's 32x32, 90 deg) or realsense_d435 "
-                             "(160x90 at 90 x 58.7 deg, 0.2-10 m, what the companion crops to an 87 x 58 deg policy); "
-                             "--camera-size, --hfov and --max-range override its values (default paper)")
+    spec = SENSOR_PRESETS[DEFAULT_SENSOR]
+    parser.add_argument("--camera", type=camera_preset, default=DEFAULT_SENSOR,
+                        help="the depth sensor each vehicle carries: realsense_d435 (160x90 at 90 x 58.7 deg, 0.2-10 m, "
+                             "what the companion crops to the bundled policy's 87 x 58 deg) or paper (32x32, 90 x 90 deg, "
+                             "20 m: the paper camera's policies); --camera-size, --hfov and --max-range override its "
+                             f"values (default {DEFAULT_SENSOR})")
     parser.add_argument("--camera-hz", type=float_range(0.0, MAX_CAMERA_HZ, low_open=True), default=DEFAULT_CAMERA_HZ,
                         help=f"depth frame rate, up to {MAX_CAMERA_HZ:g} (default {DEFAULT_CAMERA_HZ:g}; use a multiple "
                              "of the policy's control rate)")
     parser.add_argument("--camera-size", type=image_size, default=None, metavar="WxH",
-                        help=f"rendered resolution (default the --camera's, {spec.width}x{spec.height} for paper)")
+                        help=f"rendered resolution (default the --camera's, {spec.width}x{spec.height} for {DEFAULT_SENSOR})")
     parser.add_argument("--hfov", type=finite_float, default=None,
-                        help=f"horizontal field of view in degrees (default the --camera's, {spec.hfov_deg:g} for paper)")
+                        help=f"horizontal field of view in degrees (default the --camera's, {spec.hfov_deg:g} for "
+                             f"{DEFAULT_SENSOR})")
     parser.add_argument("--max-range", type=positive_float, default=None,
-                        help=f"camera range in metres (default the --camera's, {spec.max_range_m:g} for paper)")
+                        help=f"camera range in metres (default the --camera's, {spec.max_range_m:g} for {DEFAULT_SENSOR})")
     parser.add_argument("--supersample", type=int_range(1, MAX_SUPERSAMPLE), default=DEFAULT_SUPERSAMPLE,
                         help=f"sub-rays per pixel side, 1..{MAX_SUPERSAMPLE} (default {DEFAULT_SUPERSAMPLE})")
     where = f" ({frame} frame)" if frame else ""
