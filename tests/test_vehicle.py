@@ -77,7 +77,8 @@ def test_px4_vehicle_offboard_rules_failsafe_odometry_and_depth(tmp_path):
         depth_rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         depth_rx.bind(("127.0.0.1", rig.depth_port))
         depth_rx.settimeout(10.0)
-        rig.start_vehicle("--cylinder", "6,0,0.5", "--camera-hz", "30", gcs=False)
+        # the paper camera (32x32, 90 deg, 20 m): the pixel arithmetic below is for it
+        rig.start_vehicle("--cylinder", "6,0,0.5", "--camera-hz", "30", "--camera", "paper", gcs=False)
         ap = Companionish(rig.mav_port)
         try:
             hb = ap.wait_heartbeat()

@@ -22,6 +22,7 @@ import pytest
 
 from companion.depth_wire import WireFrame, decode_frame
 from companion.recording import read_recording
+from companion.spec import CameraSpec
 from tests.companion_helpers import Processes, free_udp_blocks, make_policy, read_jsonl
 
 os.environ["MAVLINK20"] = "1"
@@ -78,14 +79,20 @@ class DepthReceiver:
 
 
 def start_standins(procs: Processes, tmp_path, n: int, base_port: int, sink_port: int, gcs_port: int, *extra: str):
-    """``n`` simulated PX4 vehicles; their own depth frames go to ``sink_port`` + i, where nobody listens."""
+    """``n`` simulated PX4 vehicles; their own depth frames (the paper camera, as :func:`start_world`'s)
+    go to ``sink_port`` + i, where nobody listens."""
+    camera = () if "--camera" in extra else ("--camera", "paper")
     return procs.start("vehicle", ["-m", "sitl.vehicle", "--n", str(n), "--base-port", str(base_port),
                                    "--depth-port", str(sink_port), "--gcs-port", str(gcs_port),
-                                   "--log", str(tmp_path / "vehicle.jsonl"), "--duration", "120", *extra])
+                                   "--log", str(tmp_path / "vehicle.jsonl"), "--duration", "120", *camera, *extra])
 
 
 def start_world(procs: Processes, tmp_path, *args: str):
-    return procs.start("world", ["-m", "sitl.world", "--log", str(tmp_path / "world.jsonl"), "--duration", "120", *args])
+    """``sitl.world`` with the paper camera (32x32, 90 deg, 20 m) unless ``args`` name one: the depths and
+    pixels these tests check are worked out for it."""
+    camera = () if "--camera" in args else ("--camera", "paper")
+    return procs.start("world", ["-m", "sitl.world", "--log", str(tmp_path / "world.jsonl"), "--duration", "120",
+                                 *camera, *args])
 
 
 def events(path, name: str) -> list[dict]:
@@ -316,7 +323,8 @@ def test_a_companion_flies_to_its_goal_on_the_worlds_frames(tmp_path):
         start_world(procs, tmp_path, "--px4", "1", "--gcs-port", str(gcs), "--depth-port", str(depth),
                     "--cylinder", "10,-8,0.5")
         companion = procs.start("companion", [
-            "-m", "companion.cli", "--connect", f"udpin:127.0.0.1:{base}", "--model", str(make_policy(tmp_path / "p.pt")),
+            "-m", "companion.cli", "--connect", f"udpin:127.0.0.1:{base}",
+            "--model", str(make_policy(tmp_path / "p.pt", camera=CameraSpec())),
             "--camera", f"sitl:{depth}", "--goal", "12,0,-10", "--arm", "--takeoff", "10", "--exit-on-arrival",
             "--timeout", "60", "--heartbeat-timeout", "20", "--record", str(record), "--log", str(tmp_path / "companion.jsonl")])
         try:
