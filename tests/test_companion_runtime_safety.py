@@ -158,7 +158,9 @@ def test_a_stray_datagram_after_our_frame_does_not_hide_it(sender):
         data = payload or encode_frame(np.full((32, 32), 7.0, np.float32), vehicle=vehicle, seq=sender.seq,
                                        stamp_us=_now_us(), hfov_deg=90.0, max_range_m=20.0)
         sender.tx.sendto(data, ("127.0.0.1", sender.port))
-    time.sleep(0.2)  # all three wait in the socket: one poll reads them together
+    # All three wait in the socket: one poll reads them together. Well under the 150 ms staleness
+    # limit: a frame's age counts from its stamp to when it is read (0.2 s here once failed CI).
+    time.sleep(0.05)
     items = sender.source.poll(time.monotonic())
     assert [type(i).__name__ for i in items] == ["DepthFault", "DepthFault", "DepthFrame"], items
     assert items[0].reason.startswith("depth frame from vehicle 3") and items[1].reason.startswith("malformed")
