@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import random
 import signal
 import socket
 import subprocess
@@ -38,33 +37,11 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from benchmarks.companion_stop import _free_port, _jsonl  # noqa: E402  (one copy of the port and log helpers)
 from companion.policy import load_policy  # noqa: E402
 
 TARGET_FLIGHT_S = 20.0  # issue 15: the 2 m takeoff flight of 15 m arrives within 20 s
 FLIGHT_TIMEOUT_S = 120.0
-
-
-def _free_udp_port() -> int:
-    rng = random.Random(os.getpid() ^ time.monotonic_ns())
-    while True:
-        port = rng.randrange(20000, 32000)
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-            try:
-                s.bind(("127.0.0.1", port))
-            except OSError:
-                continue
-        return port
-
-
-def _jsonl(path: Path) -> list[dict]:
-    out = []
-    if path.exists():
-        for line in path.read_text(errors="replace").splitlines():
-            try:
-                out.append(json.loads(line))
-            except json.JSONDecodeError:
-                pass
-    return out
 
 
 def vehicle_camera(policy: Path) -> str:
@@ -78,7 +55,7 @@ def fly(policy: Path, camera: str, altitude_m: float, distance_m: float, folder:
     """One flight from the ground; the measured figures (see the module doc)."""
     folder.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ, PYTHONPATH=str(REPO), OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="1")
-    mav, depth = _free_udp_port(), _free_udp_port()
+    mav, depth = (_free_port(socket.SOCK_DGRAM, 20000, 32000) for _ in range(2))
     trace, clog = folder / "trace.jsonl", folder / "companion.jsonl"
     goal = np.array([distance_m, 0.0, -altitude_m])
     procs = [subprocess.Popen(
