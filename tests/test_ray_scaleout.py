@@ -70,7 +70,8 @@ def test_sweep_of_two_seeds_on_a_local_ray(local_ray, tmp_path, capsys):
     from sitl.learn.sweep import main
 
     out = tmp_path / "sweep"
-    code = main(["--seeds", "0,1", "--grid", "actor-lr=1e-3", "--out", str(out), "--", *TINY_TRAIN])
+    evals = ["--eval", "paper:random-medium,flown:obstacles", "--eval-episodes", "2"]
+    code = main(["--seeds", "0,1", "--grid", "actor-lr=1e-3", "--out", str(out), *evals, "--", *TINY_TRAIN])
     printed = capsys.readouterr().out
     assert code == 0, printed
     for seed in (0, 1):
@@ -90,10 +91,51 @@ def test_sweep_of_two_seeds_on_a_local_ray(local_ray, tmp_path, capsys):
     assert stats["spread"] == pytest.approx(max(finals) - min(finals))
     assert "| actor-lr=1e-3-s1 | 1 |" in printed and "spread" in (out / "sweep.md").read_text()
 
-    # Started again, the finished runs are reused, not trained again.
+    # Each run's policy was flown in both cells, as swarm_test flies them, into its own eval/ folder.
+    for run in table["runs"]:
+        cells = {c: json.loads((out / run["name"] / "eval" / "cells" / f"{c.replace(':', '-')}.json").read_text())
+                 for c in ("paper:random-medium", "flown:obstacles")}
+        assert {c: d["summary"]["success_rate"] for c, d in cells.items()} == run["result"]["eval_success"]
+        assert cells["paper:random-medium"]["summary"]["episodes"] == 2
+        assert cells["flown:obstacles"]["settings"]["scenario"]["name"] == "obstacles"
+        assert cells["flown:obstacles"]["settings"]["camera_noise"] is True  # the flown protocol's noise
+        assert cells["paper:random-medium"]["method"]["path"] == str(out / run["name"] / "policy.pt")
+    rates = [r["result"]["eval_success"]["paper:random-medium"] for r in table["runs"]]
+    assert table["groups"][0]["eval_success"]["paper:random-medium"]["spread"] == pytest.approx(max(rates) - min(rates))
+    assert "paper:random-medium" in (out / "sweep.md").read_text()
+
+    # Started again, the finished runs and their cells are reused, not trained or flown again.
     mtime = (out / "actor-lr=1e-3-s0" / "policy.pt").stat().st_mtime_ns
-    assert main(["--seeds", "0,1", "--grid", "actor-lr=1e-3", "--out", str(out), "--", *TINY_TRAIN]) == 0
+    cell_mtime = (out / "actor-lr=1e-3-s0" / "eval" / "cells" / "flown-obstacles.json").stat().st_mtime_ns
+    assert main(["--seeds", "0,1", "--grid", "actor-lr=1e-3", "--out", str(out), *evals, "--", *TINY_TRAIN]) == 0
     assert (out / "actor-lr=1e-3-s0" / "policy.pt").stat().st_mtime_ns == mtime
+    assert (out / "actor-lr=1e-3-s0" / "eval" / "cells" / "flown-obstacles.json").stat().st_mtime_ns == cell_mtime
+    assert "in flown:obstacles: success" in capsys.readouterr().err
+
+
+@pytest.mark.timeout(300)
+def test_sweep_without_ray_flies_the_evaluation_cells_too(tmp_path, capsys):
+    from sitl.learn.sweep import main
+
+    out = tmp_path / "sweep"
+    argv = ["--no-ray", "--seeds", "3", "--out", str(out), "--eval", "paper:circle-n8", "--eval-episodes", "2",
+            "--", *TINY_TRAIN]
+    assert main(argv) == 0
+    table = json.loads((out / "sweep.json").read_text())
+    cell = json.loads((out / "s3" / "eval" / "cells" / "paper-circle-n8.json").read_text())
+    assert table["runs"][0]["result"]["eval_success"] == {"paper:circle-n8": cell["summary"]["success_rate"]}
+    assert cell["settings"]["scenario"]["name"] == "circle" and cell["summary"]["episodes"] == 2
+    assert table["evaluation"] == {"cells": ["paper:circle-n8"], "episodes": 2}
+
+
+def test_sweep_refuses_an_unknown_evaluation_cell(capsys):
+    from sitl.learn.sweep import parse_args
+
+    with pytest.raises(SystemExit) as stop:
+        parse_args(["--eval", "paper:random-medium,moon:crater", "--", *TINY_TRAIN])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert "unknown evaluation cell(s) moon:crater" in err and "Traceback" not in err
 
 
 @needs_ray

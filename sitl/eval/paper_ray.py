@@ -37,7 +37,8 @@ def evaluate_cell_task(cell: PaperCell, policy_name: str | None, policy_bytes: b
     return {"summary": summary, "files": files}
 
 
-def _write_files(out: Path, cell: PaperCell, files: dict[str, bytes]) -> None:
+def write_cell_files(out: Path, cell: PaperCell, files: dict[str, bytes]) -> None:
+    """Write the files a cell's task returned under ``out``, naming the policy by its path here."""
     for rel, data in files.items():
         path = out / rel
         if rel == f"cells/{cell.name}.json":
@@ -79,7 +80,7 @@ def run_cells_on_ray(cells: list[PaperCell], out: Path, address: str, progress: 
             ready, _ = ray.wait(list(pending), num_returns=1)
             cell = pending.pop(ready[0])
             outcome = ray.get(ready[0])  # a failed cell fails the run, as it does without Ray
-            _write_files(out, cell, outcome["files"])
+            write_cell_files(out, cell, outcome["files"])
             results[cell.name] = (outcome["summary"], "computed")
             bar.set_postfix_str(cell.name)
             bar.update(1)

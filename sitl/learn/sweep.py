@@ -20,6 +20,16 @@ standard deviation and spread (max - min) over the seeds. A finished run (its
 ``final_eval.json`` exists) is not trained again when the sweep is started again, so an
 interrupted sweep resumes; an unfinished one starts afresh. ``--no-ray`` runs the same
 runs one after another in this process (no Ray needed).
+
+``--eval CELLS`` also flies every finished run's ``policy.pt`` in named evaluation cells of
+``python -m sitl.swarm_test`` (the paper protocol's ``paper:random-medium``, ...; the flown
+protocol's ``flown:circle-n8``, ...; ``--eval-episodes`` each, held-out test seeds), one Ray
+task of one CPU per run and cell, started as soon as the run has finished training. Each
+cell's JSON goes to ``OUT/<run>/eval/cells/`` (reused when the policy file and settings
+match) and its success into the tables, with mean, std and spread over the seeds::
+
+    python -m sitl.sweep --seeds 0,1,2 --eval paper:random-medium,flown:random-medium,flown:circle-n8,flown:obstacles \
+        --cpus-per-run 2 -- --preset flown-fast
 """
 
 from __future__ import annotations
@@ -35,6 +45,7 @@ import tempfile
 import time
 import uuid
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -43,6 +54,10 @@ from sitl.distributed import LOCAL, RayUnavailable, connect, describe_cluster, l
 from sitl.eval.report import write_json
 from sitl.learn.agent import AgentConfig
 from sitl.learn.config import TrainConfig
+
+if TYPE_CHECKING:
+    from sitl.eval.evaluate import EvalSettings
+    from sitl.eval.paper import PaperCell
 
 PROG = "python -m sitl.sweep"
 
@@ -92,6 +107,39 @@ def _grid_item(text: str) -> tuple[str, list[str]]:
     return name, items
 
 
+#: Episodes per evaluation cell unless ``--eval-episodes`` says otherwise (the protocols' own default).
+DEFAULT_EVAL_EPISODES = 500
+
+
+def evaluation_settings(episodes: int) -> dict[str, "EvalSettings"]:
+    """The cells ``--eval`` can name, as ``swarm_test`` flies them: ``paper:<cell>`` as ``swarm_test paper``
+    (N = 8, perfect depth; Table II's random scenes and Fig. 6's circle of 8) and ``flown:<cell>``
+    as ``swarm_test flown`` (its camera noise, jitter and altitudes; :func:`sitl.eval.flown.flown_cells`)."""
+    from sitl.eval.evaluate import EvalSettings
+    from sitl.eval.flown import flown_cells
+    from sitl.sim.config import CIRCLE_RADIUS_M, DENSITIES, ScenarioConfig
+
+    common = dict(num_uavs=8, episodes=episodes, seed=0, camera_noise=False, record_paths=False)
+    cells = {f"paper:random-{name}": EvalSettings(scenario=ScenarioConfig(name="random", density=density), **common)
+             for name, density in DENSITIES.items()}
+    cells["paper:circle-n8"] = EvalSettings(scenario=ScenarioConfig(name="circle", circle_radius_m=CIRCLE_RADIUS_M),
+                                            **common)
+    cells |= {f"flown:{cell.name}": cell.settings for cell in flown_cells(episodes)}
+    return cells
+
+
+def _eval_list(text: str) -> list[str]:
+    known = evaluation_settings(1)
+    names = [v.strip() for v in text.split(",") if v.strip()]
+    unknown = [n for n in names if n not in known]
+    if not names or unknown:
+        raise argparse.ArgumentTypeError(f"unknown evaluation cell(s) {', '.join(unknown) or repr(text)}; "
+                                         f"choose from {', '.join(known)}")
+    if len(set(names)) != len(names):
+        raise argparse.ArgumentTypeError(f"evaluation cells repeat in {text!r}")
+    return names
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = ArgumentParser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
                             usage=f"{PROG} [options] [-- TRAIN FLAGS]")
@@ -110,6 +158,12 @@ def build_parser() -> argparse.ArgumentParser:
                         help="CPUs each run's task holds, and its torch threads (default 1)")
     parser.add_argument("--no-ray", dest="ray", action="store_false",
                         help="run the runs one after another in this process instead (no Ray needed)")
+    parser.add_argument("--eval", type=_eval_list, default=[], metavar="CELLS",
+                        help="also fly every run's policy.pt in these swarm_test cells, comma-separated: "
+                             "paper:random-small|medium|large, paper:circle-n8, flown:random-small|medium|large, "
+                             "flown:circle-n8, flown:obstacles, flown:random-medium-jsbsim (one 1-CPU task each)")
+    parser.add_argument("--eval-episodes", type=int_range(1, 100_000), default=DEFAULT_EVAL_EPISODES,
+                        help=f"episodes per evaluation cell, held-out test seeds (default {DEFAULT_EVAL_EPISODES})")
     return parser
 
 
@@ -216,6 +270,21 @@ def _read_text(path: Path) -> str | None:
         return None
 
 
+# --------------------------------------------------------------------------- evaluation cells
+
+def _eval_cells(run_dir: Path, labels: list[str], settings: dict[str, "EvalSettings"]) -> list[tuple[str, "PaperCell"]]:
+    """``(label, cell)`` for each ``--eval`` cell of one run: its policy file, evaluated as the method it trained."""
+    from sitl.eval.paper import PaperCell
+
+    method = (_read_json(run_dir / "config.json") or {}).get("train", {}).get("method", "sac_ae")
+    return [(label, PaperCell(label.replace(":", "-"), method, str(run_dir / "policy.pt"), settings[label]))
+            for label in labels]
+
+
+def _log_eval(run: SweepRun, label: str, summary: dict, status: str) -> None:
+    log(f"{run.name} in {label}: success {summary['success_rate']:.3f} on {summary['episodes']} episodes ({status})")
+
+
 # --------------------------------------------------------------------------- the table
 
 def _stats(values: list[float]) -> dict:
@@ -227,7 +296,8 @@ def _stats(values: list[float]) -> dict:
 
 
 def summarize_sweep(runs: list[SweepRun], results: dict[str, dict | None]) -> dict:
-    """Per grid point, mean / std / spread over seeds of the last validation and the final successes."""
+    """Per grid point, mean / std / spread over seeds of the last validation, the final successes and
+    the ``--eval`` cells' successes."""
     points: dict[str, list[SweepRun]] = {}
     for run in runs:
         points.setdefault(json.dumps(run.grid, sort_keys=True), []).append(run)
@@ -237,8 +307,15 @@ def summarize_sweep(runs: list[SweepRun], results: dict[str, dict | None]) -> di
         scenarios = sorted({s for d in done for s in d["final_success"]})
         groups.append({"grid": json.loads(key), "runs": [r.name for r in members],
                        "last_validation_success": _stats([d["last_validation_success"] for d in done]),
-                       "final_success": {s: _stats([d["final_success"].get(s) for d in done]) for s in scenarios}})
+                       "final_success": {s: _stats([d["final_success"].get(s) for d in done]) for s in scenarios},
+                       "eval_success": {c: _stats([d.get("eval_success", {}).get(c) for d in done])
+                                        for c in _eval_labels(done)}})
     return {"groups": groups}
+
+
+def _eval_labels(results) -> list[str]:
+    """The evaluation cells any of ``results`` was flown in, in the order first met."""
+    return list(dict.fromkeys(c for r in results if r for c in r.get("eval_success", {})))
 
 
 def _fmt(value, digits: int = 3) -> str:
@@ -247,22 +324,28 @@ def _fmt(value, digits: int = 3) -> str:
 
 def sweep_markdown(runs: list[SweepRun], results: dict[str, dict | None], summary: dict, train_argv: list[str]) -> str:
     scenarios = sorted({s for r in results.values() if r for s in r["final_success"]})
+    cells = _eval_labels(results.values())
     lines = ["# Training sweep", "", f"Generated by `{PROG}`; training flags: `{' '.join(train_argv) or '(defaults)'}`.",
              "Validation: the trainer's last validation (validation seeds); final: the exported networks on the "
-             "test seeds (`final_eval.json`).", "",
-             "| run | seed | " + " | ".join(f"final {s}" for s in scenarios) + " | last validation | updates | wall (min) |",
-             "| --- | --- | " + " | ".join("---" for _ in scenarios) + " | --- | --- | --- |"]
+             "test seeds (`final_eval.json`)" + ("; `paper:`/`flown:` columns: the policy in that `swarm_test` "
+                                                 "cell (held-out test seeds, `<run>/eval/cells/`)." if cells else "."), "",
+             "| run | seed | " + " | ".join([*(f"final {s}" for s in scenarios), *cells])
+             + " | last validation | updates | wall (min) |",
+             "| --- | --- | " + " | ".join("---" for _ in [*scenarios, *cells]) + " | --- | --- | --- |"]
     for run in runs:
         r = results.get(run.name)
         if r is None:
-            lines.append(f"| {run.name} | {run.seed} | " + " | ".join("failed" for _ in scenarios) + " | - | - | - |")
+            lines.append(f"| {run.name} | {run.seed} | " + " | ".join("failed" for _ in [*scenarios, *cells])
+                         + " | - | - | - |")
             continue
         wall = r["wall_time_s"] / 60 if r.get("wall_time_s") is not None else None
-        lines.append(f"| {run.name} | {run.seed} | " + " | ".join(_fmt(r["final_success"].get(s)) for s in scenarios)
+        lines.append(f"| {run.name} | {run.seed} | "
+                     + " | ".join([*(_fmt(r["final_success"].get(s)) for s in scenarios),
+                                   *(_fmt(r.get("eval_success", {}).get(c)) for c in cells)])
                      + f" | {_fmt(r['last_validation_success'])} | {r['updates']} | {_fmt(wall, 1)} |")
     lines += ["", "Over seeds (mean ± std, spread = max - min):", "",
-              "| grid point | runs | " + " | ".join(f"final {s}" for s in scenarios) + " | last validation |",
-              "| --- | --- | " + " | ".join("---" for _ in scenarios) + " | --- |"]
+              "| grid point | runs | " + " | ".join([*(f"final {s}" for s in scenarios), *cells]) + " | last validation |",
+              "| --- | --- | " + " | ".join("---" for _ in [*scenarios, *cells]) + " | --- |"]
     for group in summary["groups"]:
         label = ", ".join(f"{k}={v}" for k, v in group["grid"].items()) or "(all)"
 
@@ -270,7 +353,8 @@ def sweep_markdown(runs: list[SweepRun], results: dict[str, dict | None], summar
             return "-" if not st or not st["n"] else \
                 f"{st['mean']:.3f} ± {st['std']:.3f} (spread {st['spread']:.3f}, n={st['n']})"
         lines.append(f"| {label} | {len(group['runs'])} | "
-                     + " | ".join(cell(group["final_success"].get(s)) for s in scenarios)
+                     + " | ".join([*(cell(group["final_success"].get(s)) for s in scenarios),
+                                   *(cell(group["eval_success"].get(c)) for c in cells)])
                      + f" | {cell(group['last_validation_success'])} |")
     return "\n".join(lines) + "\n"
 
@@ -285,12 +369,18 @@ def _store_files(run_dir: Path, files: dict[str, bytes]) -> None:
 
 
 def run_sweep(out: Path, runs: list[SweepRun], train_argv: list[str], use_ray: bool = True, address: str | None = LOCAL,
-              num_cpus: int | None = None, cpus_per_run: int = 1) -> dict:
-    """Train every run not finished yet (as Ray tasks, or here one after another), then write the tables."""
+              num_cpus: int | None = None, cpus_per_run: int = 1, evals: list[str] | None = None,
+              eval_episodes: int = DEFAULT_EVAL_EPISODES) -> dict:
+    """Train every run not finished yet (as Ray tasks, or here one after another), fly every finished
+    run's policy in the ``evals`` cells not stored yet, then write the tables."""
+    from sitl.eval.paper import run_cell, stored_cell
+
     out.mkdir(parents=True, exist_ok=True)
     token = uuid.uuid4().hex
     (out / TOKEN_FILE).write_text(token)
+    settings = evaluation_settings(eval_episodes) if evals else {}
     results: dict[str, dict | None] = {}
+    evaluations: dict[str, dict[str, dict]] = {run.name: {} for run in runs}  # run -> cell label -> summary
     todo = []
     for run in runs:
         stored = run_result(out / run.name)
@@ -301,30 +391,81 @@ def run_sweep(out: Path, runs: list[SweepRun], train_argv: list[str], use_ray: b
         if (out / run.name).exists():
             shutil.rmtree(out / run.name)  # an interrupted run starts afresh
         todo.append(run)
+
+    def cells_to_fly(run: SweepRun) -> list[tuple[str, "PaperCell"]]:
+        """The run's evaluation cells not stored under its directory yet (the stored ones are taken)."""
+        left = []
+        for label, cell in _eval_cells(out / run.name, evals or [], settings):
+            summary = stored_cell(cell, out / run.name / "eval")
+            if summary is None:
+                left.append((label, cell))
+            else:
+                evaluations[run.name][label] = summary
+                _log_eval(run, label, summary, "stored")
+        return left
+
+    reused_cells = {run.name: cells_to_fly(run) for run in runs if run not in todo}
     started = time.perf_counter()
-    if todo and use_ray:
+    if use_ray and (todo or any(reused_cells.values())):
+        from sitl.eval.paper_ray import write_cell_files, evaluate_cell_task
+
         ray = connect(address, num_cpus)
-        log(f"{describe_cluster(ray)}; {len(todo)} run(s) of {cpus_per_run} CPU(s) each")
-        task = ray.remote(num_cpus=cpus_per_run, max_retries=0)(train_run)
-        pending = {task.remote(run, str((out / run.name).resolve()), token, cpus_per_run): run for run in todo}
+        log(f"{describe_cluster(ray)}; {len(todo)} run(s) of {cpus_per_run} CPU(s) each"
+            + (f", then {len(evals)} evaluation cell(s) of 1 CPU per run" if evals else ""))
+        train_task = ray.remote(num_cpus=cpus_per_run, max_retries=0)(train_run)
+        eval_task = ray.remote(num_cpus=1, max_retries=1)(evaluate_cell_task)
+        pending: dict = {}
+
+        def submit_cells(run: SweepRun, cells: list[tuple[str, "PaperCell"]]) -> None:
+            if cells:
+                blob = ray.put((out / run.name / "policy.pt").read_bytes())  # nodes need not see this machine's files
+                for label, cell in cells:
+                    pending[eval_task.remote(cell, "policy.pt", blob)] = (run, label, cell)
+
+        for run in todo:
+            pending[train_task.remote(run, str((out / run.name).resolve()), token, cpus_per_run)] = (run, None, None)
+        for run in runs:
+            submit_cells(run, reused_cells.get(run.name, []))
         while pending:
             ready, _ = ray.wait(list(pending), num_returns=1)
-            run = pending.pop(ready[0])
+            run, label, cell = pending.pop(ready[0])
             try:
                 outcome = ray.get(ready[0])
-            except Exception as err:  # noqa: BLE001 - a failed task is one failed row, not a failed sweep
-                log(f"{run.name}: failed on Ray: {str(err).strip().splitlines()[-1] if str(err).strip() else err}")
-                results[run.name] = None
+            except Exception as err:  # noqa: BLE001 - a failed task is one failed entry, not a failed sweep
+                what = f"evaluation in {label}" if label else "training"
+                log(f"{run.name}: {what} failed on Ray: "
+                    f"{str(err).strip().splitlines()[-1] if str(err).strip() else err}")
+                if label is None:
+                    results[run.name] = None
                 continue
-            _collect(out, run, outcome, results, started, len(results), len(runs))
+            if label is None:
+                _collect(out, run, outcome, results, started, len(results), len(runs))
+                if results[run.name] is not None:
+                    submit_cells(run, cells_to_fly(run))
+            else:
+                write_cell_files(out / run.name / "eval", cell, outcome["files"])
+                evaluations[run.name][label] = outcome["summary"]
+                _log_eval(run, label, outcome["summary"], "computed")
     else:
         for run in todo:
             outcome = train_run(run, str((out / run.name).resolve()), token, cpus_per_run)
             _collect(out, run, outcome, results, started, len(results), len(runs))
+        for run in runs:
+            if results.get(run.name) is None:
+                continue
+            for label, cell in reused_cells.get(run.name) or (cells_to_fly(run) if run in todo else []):
+                summary, status = run_cell(cell, out / run.name / "eval", progress=False)
+                evaluations[run.name][label] = summary
+                _log_eval(run, label, summary, status)
+    for name, cells in evaluations.items():
+        if results.get(name) is not None and cells:
+            results[name] = {**results[name], "eval_success": {label: cells[label]["success_rate"]
+                                                               for label in (evals or []) if label in cells}}
     summary = summarize_sweep(runs, results)
-    write_json(out / "sweep.json", {"train_argv": train_argv, "runs": [
-        {"name": r.name, "seed": r.seed, "grid": r.grid, "argv": list(r.argv), "result": results.get(r.name)}
-        for r in runs], **summary})
+    write_json(out / "sweep.json", {"train_argv": train_argv, "evaluation": {"cells": evals or [],
+                                                                            "episodes": eval_episodes},
+                                    "runs": [{"name": r.name, "seed": r.seed, "grid": r.grid, "argv": list(r.argv),
+                                              "result": results.get(r.name)} for r in runs], **summary})
     (out / "sweep.md").write_text(sweep_markdown(runs, results, summary, train_argv))
     return {"results": results, **summary}
 
@@ -345,7 +486,8 @@ def main(argv: list[str] | None = None) -> int:
     train_argv = argv[argv.index("--") + 1:] if "--" in argv else []
     out = args.out or Path("runs") / f"sweep-{time.strftime('%Y%m%d-%H%M%S')}"
     try:
-        result = run_sweep(out, runs, train_argv, args.ray, args.address, args.num_cpus, args.cpus_per_run)
+        result = run_sweep(out, runs, train_argv, args.ray, args.address, args.num_cpus, args.cpus_per_run,
+                           args.eval, args.eval_episodes)
     except RayUnavailable as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
