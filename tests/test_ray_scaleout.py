@@ -126,6 +126,7 @@ def test_sweep_without_ray_flies_the_evaluation_cells_too(tmp_path, capsys):
     assert table["runs"][0]["result"]["eval_success"] == {"paper:circle-n8": cell["summary"]["success_rate"]}
     assert cell["settings"]["scenario"]["name"] == "circle" and cell["summary"]["episodes"] == 2
     assert table["evaluation"] == {"cells": ["paper:circle-n8"], "episodes": 2}
+    assert (out / "sweep.png").stat().st_size > 0
 
 
 def test_sweep_refuses_an_unknown_evaluation_cell(capsys):

@@ -156,3 +156,35 @@ def plot_protocol(results: dict[str, dict[str, dict]], path: str | Path, title: 
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
+
+
+def plot_seed_spread(columns: dict[str, dict[str, dict[int, float]]], path: str | Path, title: str) -> Path:
+    """A sweep's successes over seeds: one panel per grid point, per column (a final or evaluation
+    scene) one dot per seed with its seed number and a bar at the mean; the spread (max - min) in
+    the tick label. ``columns[grid point][column][seed]`` is a success rate."""
+    plt = _pyplot()
+    path = Path(path)
+    points = list(columns)
+    fig, axes = plt.subplots(1, max(1, len(points)), figsize=(max(6.0, 1.6 * max(len(c) for c in columns.values())
+                                                                  * len(points)), 4.6), squeeze=False)
+    for ax, point in zip(axes[0], points):
+        names = list(columns[point])
+        labels = []
+        for k, name in enumerate(names):
+            seeds = columns[point][name]
+            rates = np.array(list(seeds.values()), dtype=float)
+            ax.scatter(np.full(len(rates), k), rates, color=f"C{k % 10}", zorder=3)
+            for seed, rate in seeds.items():
+                ax.annotate(f"s{seed}", (k, rate), xytext=(5, -3), textcoords="offset points", fontsize=7)
+            if len(rates):
+                ax.hlines(rates.mean(), k - 0.3, k + 0.3, color="k", lw=1.5)
+            labels.append(f"{name}\nspread {np.ptp(rates):.3f}" if len(rates) else name)
+        ax.set_xticks(range(len(names)), labels, rotation=25, ha="right", fontsize=8)
+        ax.set(ylabel="success rate", title=point, xlim=(-0.6, len(names) - 0.4))
+        ax.grid(alpha=0.3, axis="y")
+    fig.suptitle(title)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

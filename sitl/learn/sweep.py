@@ -14,7 +14,7 @@ file system) they write their runs there directly; otherwise each run trains in 
 temporary directory on its node and its files come back here when it ends — all but
 ``checkpoint.pt`` (its replay buffer is hundreds of MiB), which stays on the node.
 
-The sweep writes ``sweep.json`` and ``sweep.md``: per run the last validation success and
+The sweep writes ``sweep.json``, ``sweep.md`` and ``sweep.png``: per run the last validation success and
 the final (test-seed) success of every evaluation scenario; per grid point their mean,
 standard deviation and spread (max - min) over the seeds. A finished run (its
 ``final_eval.json`` exists) is not trained again when the sweep is started again, so an
@@ -467,7 +467,30 @@ def run_sweep(out: Path, runs: list[SweepRun], train_argv: list[str], use_ray: b
                                     "runs": [{"name": r.name, "seed": r.seed, "grid": r.grid, "argv": list(r.argv),
                                               "result": results.get(r.name)} for r in runs], **summary})
     (out / "sweep.md").write_text(sweep_markdown(runs, results, summary, train_argv))
+    plot_sweep(out / "sweep.png", runs, results, summary)
     return {"results": results, **summary}
+
+
+def plot_sweep(path: Path, runs: list[SweepRun], results: dict[str, dict | None], summary: dict) -> None:
+    """``sweep.png``: every finished run's final and evaluation-cell successes, by grid point and seed."""
+    from sitl.eval.plots import plot_seed_spread
+
+    by_name = {r.name: r for r in runs}
+    columns = {}
+    for group in summary["groups"]:
+        label = ", ".join(f"{k}={v}" for k, v in group["grid"].items()) or "all runs"
+        done = [(by_name[n].seed, results[n]) for n in group["runs"] if results.get(n)]
+        names = [*(f"final {s}" for s in group["final_success"]), *group["eval_success"]]
+        columns[label] = {name: {seed: value for seed, r in done if (value := _column(r, name)) is not None}
+                          for name in names}
+    if any(columns.values()):
+        plot_seed_spread(columns, path, "success over seeds (python -m sitl.sweep)")
+
+
+def _column(result: dict, name: str) -> float | None:
+    if name.startswith("final "):
+        return result["final_success"].get(name[len("final "):])
+    return result.get("eval_success", {}).get(name)
 
 
 def _collect(out: Path, run: SweepRun, outcome: dict, results: dict, started: float, done: int, total: int) -> None:
@@ -496,5 +519,6 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     print((out / "sweep.md").read_text())
     failed = [name for name, r in result["results"].items() if r is None]
-    print(f"wrote {out / 'sweep.md'} and {out / 'sweep.json'}" + (f"; failed: {', '.join(failed)}" if failed else ""))
+    print(f"wrote {out / 'sweep.md'}, {out / 'sweep.json'} and {out / 'sweep.png'}"
+          + (f"; failed: {', '.join(failed)}" if failed else ""))
     return 1 if failed else 0
