@@ -129,6 +129,22 @@ def test_sweep_without_ray_flies_the_evaluation_cells_too(tmp_path, capsys):
     assert (out / "sweep.png").stat().st_size > 0
 
 
+def test_a_recipe_run_reports_its_whole_recipe(tmp_path):
+    """A recipe's row: all stages' updates, the end-to-end wall time, the last stage's last validation."""
+    from sitl.learn.sweep import run_result
+
+    run = tmp_path / "s0"
+    (run / "stage2-b").mkdir(parents=True)
+    (run / "final_eval.json").write_text(json.dumps(
+        {"updates": 900, "wall_time_s": 60.0, "evaluation": {"scenario": "random", "success_rate": 0.8}}))
+    (run / "stage2-b" / "learning_curve.json").write_text(json.dumps({"eval_success": [0.5, 0.7]}))
+    (run / "recipe.json").write_text(json.dumps({"done": True, "wall_s": 1800.0, "stages": [
+        {"run_dir": "stage1-a", "updates": 800}, {"run_dir": "stage2-b", "updates": 600}]}))
+    result = run_result(run)
+    assert result["updates"] == 1400 and result["wall_time_s"] == 1800.0
+    assert result["last_validation_success"] == 0.7 and result["final_success"] == {"random": 0.8}
+
+
 def test_sweep_refuses_an_unknown_evaluation_cell(capsys):
     from sitl.learn.sweep import parse_args
 

@@ -227,13 +227,18 @@ def run_result(run_dir: Path) -> dict | None:
     final = _read_json(run_dir / "final_eval.json")
     if final is None:
         return None
-    curve = _read_json(run_dir / "learning_curve.json") or {}
+    recipe = _read_json(run_dir / "recipe.json")  # a recipe: its stages are runs of their own under run_dir
+    curve_dir = run_dir / recipe["stages"][-1]["run_dir"] if recipe and recipe.get("stages") else run_dir
+    curve = _read_json(curve_dir / "learning_curve.json") or {}
     validations = curve.get("eval_success") or []
     finals = {value["scenario"]: value["success_rate"] for key, value in final.items()
               if key.startswith("evaluation") and isinstance(value, dict) and "success_rate" in value}
-    return {"last_validation_success": validations[-1] if validations else None, "final_success": finals,
-            "updates": final.get("updates"), "wall_time_s": final.get("wall_time_s"),
-            "selected_snapshot": (final.get("selected_snapshot") or {}).get("updates")}
+    result = {"last_validation_success": validations[-1] if validations else None, "final_success": finals,
+              "updates": final.get("updates"), "wall_time_s": final.get("wall_time_s"),
+              "selected_snapshot": (final.get("selected_snapshot") or {}).get("updates")}
+    if recipe and recipe.get("done"):  # the whole recipe's updates and its end-to-end wall time
+        result |= {"updates": sum(stage["updates"] for stage in recipe["stages"]), "wall_time_s": recipe["wall_s"]}
+    return result
 
 
 def train_run(run: SweepRun, run_dir: str, token: str, threads: int) -> dict:
