@@ -23,6 +23,16 @@ def _pyplot():
     return plt
 
 
+def _save(fig, path: Path, title: str, dpi: int = 100) -> Path:
+    """Title, lay out, write ``path`` (its folder made) and close ``fig``; returns ``path``."""
+    fig.suptitle(title)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi)
+    _pyplot().close(fig)
+    return path
+
+
 def _colours(plt, count: int) -> np.ndarray:
     """One distinct colour per UAV (tab20 up to 20 UAVs, then a continuous map)."""
     if count <= 10:
@@ -83,13 +93,8 @@ def plot_trajectories(records: list[UAVRecord], path: str | Path, title: str, ep
     for ax in (top, front, side):
         ax.grid(alpha=0.3)
     failed = sum(not r.success for r in chosen)
-    fig.suptitle(f"{title}\nepisode {chosen[0].episode}: {len(chosen) - failed}/{len(chosen)} arrived "
-                 "(dot: start, x: goal, red ring: collision, grey square: timeout)")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    return _save(fig, path, f"{title}\nepisode {chosen[0].episode}: {len(chosen) - failed}/{len(chosen)} arrived "
+                 "(dot: start, x: goal, red ring: collision, grey square: timeout)", dpi=90)
 
 
 def plot_scaling(results: dict[str, dict[int, dict]], path: str | Path, title: str) -> Path:
@@ -113,12 +118,7 @@ def plot_scaling(results: dict[str, dict[int, dict]], path: str | Path, title: s
         ax.set(xlabel="number of UAVs N", ylabel=label, ylim=(-0.03, 1.03))
         ax.grid(alpha=0.3)
     ax_s.legend()
-    fig.suptitle(title)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return _save(fig, path, title)
 
 
 def plot_protocol(results: dict[str, dict[str, dict]], path: str | Path, title: str) -> Path:
@@ -150,12 +150,7 @@ def plot_protocol(results: dict[str, dict[str, dict]], path: str | Path, title: 
         ax.set(ylabel="success rate", ylim=(0, 1.05), title=sub)
         ax.grid(alpha=0.3, axis="y")
         ax.legend(fontsize=8)
-    fig.suptitle(title)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return _save(fig, path, title)
 
 
 def plot_seed_spread(columns: dict[str, dict[str, dict[int, float]]], path: str | Path, title: str) -> Path:
@@ -182,9 +177,4 @@ def plot_seed_spread(columns: dict[str, dict[str, dict[int, float]]], path: str 
         ax.set_xticks(range(len(names)), labels, rotation=25, ha="right", fontsize=8)
         ax.set(ylabel="success rate", title=point, xlim=(-0.6, len(names) - 0.4))
         ax.grid(alpha=0.3, axis="y")
-    fig.suptitle(title)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return _save(fig, path, title)
