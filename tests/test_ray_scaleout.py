@@ -128,6 +128,14 @@ def test_sweep_without_ray_flies_the_evaluation_cells_too(tmp_path, capsys):
     assert table["evaluation"] == {"cells": ["paper:circle-n8"], "episodes": 2}
     assert (out / "sweep.png").stat().st_size > 0
 
+    # A finished run whose policy file went missing: one line that names it, no traceback.
+    (out / "s3" / "policy.pt").unlink()
+    (out / "s3" / "eval" / "cells" / "paper-circle-n8.json").unlink()
+    capsys.readouterr()
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "error: policy file" in err and "s3/policy.pt not found" in err and "Traceback" not in err
+
 
 def test_a_recipe_run_reports_its_whole_recipe(tmp_path):
     """A recipe's row: all stages' updates, the end-to-end wall time, the last stage's last validation."""

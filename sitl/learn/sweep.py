@@ -51,6 +51,7 @@ import numpy as np
 
 from sitl.cli_args import ArgumentParser, int_range, output_dir
 from sitl.distributed import LOCAL, RayUnavailable, connect, describe_cluster, log, single_thread
+from sitl.eval.methods import EvaluationError
 from sitl.eval.report import write_json
 from sitl.learn.agent import AgentConfig
 from sitl.learn.config import TrainConfig
@@ -458,7 +459,7 @@ def run_sweep(out: Path, runs: list[SweepRun], train_argv: list[str], use_ray: b
         for run in runs:
             if results.get(run.name) is None:
                 continue
-            for label, cell in reused_cells.get(run.name) or (cells_to_fly(run) if run in todo else []):
+            for label, cell in reused_cells[run.name] if run.name in reused_cells else cells_to_fly(run):
                 summary, status = run_cell(cell, out / run.name / "eval", progress=False)
                 evaluations[run.name][label] = summary
                 _log_eval(run, label, summary, status)
@@ -516,7 +517,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         result = run_sweep(out, runs, train_argv, args.ray, args.address, args.num_cpus, args.cpus_per_run,
                            args.eval, args.eval_episodes)
-    except RayUnavailable as err:
+    except (RayUnavailable, EvaluationError) as err:  # EvaluationError: a run's policy file cannot be flown
         print(f"error: {err}", file=sys.stderr)
         return 2
     except OSError as err:
