@@ -195,7 +195,7 @@ PRESETS: dict[str, dict] = {
     },
     # The flown recipe within 45 min on 2 cores (issue 17): the same task, stages and update
     # counts, with the agent's MLPs at 512 hidden units (paper: 1024) and the autoencoder
-    # updated every second update (reference: every update): an update at 32x20 is 1.6-2.0x
+    # updated every second update (reference: every update): an update at 32x20 is 1.6x
     # cheaper (`benchmarks/train_speed.py`, docs/training.md "flown-fast"). Validation
     # is sparser and the export's evaluation shorter (the recipe's 11 min of evaluation after
     # the stages -> ~4 min); `python -m sitl.swarm_test flown` is the full evaluation.
