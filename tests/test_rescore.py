@@ -25,11 +25,13 @@ def _run(tmp_path, *args):
                           timeout=300)
 
 
-def test_score_weighs_random_and_circle_scenes_as_halves():
+def test_score_weighs_each_kind_of_scene_equally():
     results = {"random-medium": {"success_rate": 0.9}, "circle-n8": {"success_rate": 1.0},
-               "circle-n12": {"success_rate": 0.8}, "circle-n14": {"success_rate": 0.9}}
-    assert selection_score(results) == pytest.approx(0.5 * 0.9 + 0.5 * 0.9)
+               "circle-n12": {"success_rate": 0.8}, "circle-n14": {"success_rate": 0.6}}
+    assert selection_score(results) == pytest.approx(0.5 * 0.9 + 0.5 * 0.8)
     assert selection_score({"circle-n8": {"success_rate": 0.7}}) == pytest.approx(0.7)
+    # an obstacle scene is a third kind, not one more random scene
+    assert selection_score({**results, "obstacles": {"success_rate": 0.6}}) == pytest.approx((0.9 + 0.8 + 0.6) / 3)
 
 
 def test_rescored_rows_compete_only_among_themselves():

@@ -99,14 +99,17 @@ class Recipe:
 
     def __init__(self, cfg: TrainConfig, agent_cfg: AgentConfig, stages: tuple[RecipeStage, ...], run_dir: Path,
                  rescore_top: int, rescore_episodes: int, explicit: frozenset[str] = frozenset(),
-                 scale: float = 1.0, log=None) -> None:
+                 scale: float = 1.0, log=None, evaluation_steps: int | None = None) -> None:
         """``cfg``/``agent_cfg``: the recipe's configs (preset and explicit flags, ``explicit`` naming the
         flags given); ``scale``: multiplies the stages' updates, validation intervals and every
-        evaluation's episodes (a quick trial of the whole recipe); ``final_eval_episodes`` comes from ``cfg``."""
+        evaluation's episodes (a quick trial of the whole recipe); ``final_eval_episodes`` comes from ``cfg``;
+        ``evaluation_steps``: the time limit of the rescoring and the final evaluation (default: the
+        training episodes' own)."""
         self.cfg, self.agent_cfg, self.run_dir = cfg, agent_cfg, run_dir
         self.stages = scaled_stages(stages, scale)
         self.explicit, self.scale = frozenset(explicit), scale
         self.rescore_top, self.rescore_episodes = rescore_top, scaled(rescore_episodes, scale)
+        self.evaluation_steps = evaluation_steps
         self.final_eval_episodes = scaled(cfg.final_eval_episodes, scale) if cfg.final_eval_episodes else 0
         self.log = log or (lambda message: print(message, file=sys.stderr, flush=True))
         self.state = _load_state(run_dir)
@@ -173,9 +176,10 @@ class Recipe:
             if "rescored" in row:
                 continue  # done before an interruption
             act = snapshot_actor(cfg, agent_cfg, sdir / "snapshots" / f"agent_{row['updates']}.pt")
-            row["rescored"] = rescore_snapshot(cfg, act, list(scenes), self.rescore_episodes)
+            row["rescored"] = rescore_snapshot(cfg, act, list(scenes), self.rescore_episodes, self.evaluation_steps)
             cells = ", ".join(f"{name} {r['success_rate']:.3f}" for name, r in row["rescored"]["scenes"].items())
-            self.log(f"rescored {row['updates']} updates on {self.rescore_episodes} episodes per scene: {cells} "
+            self.log(f"rescored {row['updates']} updates on {self.rescore_episodes} episodes per scene "
+                     f"({row['rescored']['max_episode_steps']} steps): {cells} "
                      f"-> score {row['rescored']['score']:.3f} (training-time {row['score']:.3f})")
             (sdir / "snapshots" / "validation.json").write_text(json.dumps(rows, indent=1))
 
@@ -190,7 +194,7 @@ class Recipe:
         recipe = {"preset": self.cfg.preset, "scale": self.scale, "stages": self.state["stages"],
                   "rescore": {"top": self.rescore_top, "episodes": self.rescore_episodes},
                   "wall_time_s_before_final_evaluation": round(self.state["wall_s"], 1)}
-        path = trainer.finish(recipe=recipe)
+        path = trainer.finish(recipe=recipe, evaluation_steps=self.evaluation_steps)
         for name in ("policy.pt", "final_eval.json"):  # the recipe draws its own learning curve
             if (sdir / name).is_file():
                 shutil.copyfile(sdir / name, self.run_dir / name)
@@ -200,6 +204,13 @@ class Recipe:
         """Every stage not yet done, the rescoring, the final evaluation and the export."""
         self._t0 = time.perf_counter()
         self.state.setdefault("preset", self.cfg.preset)
+        if self.state.get("done") and len(self.state["stages"]) < len(self.stages):
+            # The recipe gained stages since this run finished: its rescoring and export are
+            # superseded, so the wall time is that of its stages, and the new ones add to it.
+            self.state["wall_s"] = sum(s["wall_s"] for s in self.state["stages"])
+            del self.state["done"]
+            self.log(f"{self.run_dir}: finished with {len(self.state['stages'])} stages, the recipe now has "
+                     f"{len(self.stages)}: continuing with the new ones (earlier export superseded)")
         _save_state(self.run_dir, self.state)  # a resume before the first stage ends knows the scale too
         self.log(f"recipe '{self.cfg.preset}': {len(self.stages)} stages, "
                  f"{sum(s.train.get('total_updates', self.cfg.total_updates) for s in self.stages)} updates in all; "

@@ -11,8 +11,8 @@ of 8, 12 and 14 UAVs, and writes the result into each snapshot's row of
 The rescored score then takes the place of the training-time score in the selection:
 ``python -m sitl.train --resume RUN_DIR`` on the finished run re-selects, runs the final
 (test-seed) evaluation and exports ``policy.pt`` from the new choice. The score is the
-mean of two halves, the random scenes' mean success and the circles' mean success, so
-neither kind of scene can outvote the other by being listed more often.
+mean over the kinds of scene flown (random scenes, circles, obstacle scenes) of each kind's
+mean success, so no kind can outvote another by being listed more often.
 """
 
 from __future__ import annotations
@@ -67,22 +67,30 @@ def scenes_of(densities: list[str], circle_uavs: list[int], random_uavs: int) ->
            [(f"circle-n{n}", "circle", n, "medium") for n in circle_uavs]
 
 
-def rescore_snapshot(cfg: TrainConfig, make_actor: ActorFactory, scenes: list[Scene], episodes: int) -> dict:
-    """Success and SPL of one controller in every scene on the validation seeds, and its score."""
+def rescore_snapshot(cfg: TrainConfig, make_actor: ActorFactory, scenes: list[Scene], episodes: int,
+                     max_episode_steps: int | None = None) -> dict:
+    """Success and SPL of one controller in every scene on the validation seeds, and its score.
+
+    ``max_episode_steps``: the time limit to fly them with (default: the run's training limit).
+    """
     results: dict[str, dict] = {}
+    steps = max_episode_steps or cfg.max_episode_steps
     for name, scenario, uavs, density in scenes:
-        scene_cfg = replace(cfg, num_uavs=uavs, density=density)
+        scene_cfg = replace(cfg, num_uavs=uavs, density=density, max_episode_steps=steps)
         summary = evaluate_scenario(make_actor, scene_cfg, scenario, episodes, VALIDATION_SEED_OFFSET + cfg.seed)
         results[name] = {"success_rate": summary["success_rate"], "spl": summary["spl"],
                          "success_ci95_half_width": summary["success_ci95_half_width"]}
-    return {"episodes": episodes, "scenes": results, "score": selection_score(results)}
+    return {"episodes": episodes, "max_episode_steps": steps, "scenes": results, "score": selection_score(results)}
+
+
+#: The kinds of scene the selection score weighs equally, by the scene name's prefix.
+SCENE_KINDS = ("random", "circle", "obstacles")
 
 
 def selection_score(results: dict[str, dict]) -> float:
-    """Mean of the random scenes' mean success and the circles' mean success (see the module doc)."""
-    halves = [[r["success_rate"] for name, r in results.items() if name.startswith(kind)]
-              for kind in ("random", "circle")]
-    return float(np.mean([np.mean(h) for h in halves if h]))
+    """Mean over the kinds of scene (:data:`SCENE_KINDS`) of each kind's mean success (see the module doc)."""
+    kinds = [[r["success_rate"] for name, r in results.items() if name.startswith(kind)] for kind in SCENE_KINDS]
+    return float(np.mean([np.mean(k) for k in kinds if k]))
 
 
 def _int_list(text: str) -> list[int]:

@@ -17,6 +17,7 @@ import pickle
 import sys
 import time
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -342,10 +343,13 @@ class Trainer:
         return (c.total_updates > 0 and k["updates"] >= c.total_updates) or \
                (c.max_episodes > 0 and k["episodes"] >= c.max_episodes)
 
-    def evaluate(self, episodes: int, seed_offset: int = EVAL_SEED_OFFSET) -> dict[str, dict]:
-        """Deterministic evaluation on unseen seeds (test seeds by default), one summary per evaluation scenario."""
-        return {name: evaluate_scenario(agent_actor(self.agent), self.cfg, name, episodes, seed_offset + self.cfg.seed)
-                for name in evaluation_scenarios(self.cfg)}
+    def evaluate(self, episodes: int, seed_offset: int = EVAL_SEED_OFFSET,
+                 max_episode_steps: int | None = None) -> dict[str, dict]:
+        """Deterministic evaluation on unseen seeds (test seeds by default), one summary per evaluation scenario,
+        with the training episodes' time limit unless ``max_episode_steps`` is given."""
+        cfg = replace(self.cfg, max_episode_steps=max_episode_steps or self.cfg.max_episode_steps)
+        return {name: evaluate_scenario(agent_actor(self.agent), cfg, name, episodes, seed_offset + cfg.seed)
+                for name in evaluation_scenarios(cfg)}
 
     def validate(self, write=print) -> None:
         """Evaluate on the validation seeds, log it, and keep a snapshot when selecting the best."""
@@ -500,11 +504,12 @@ class Trainer:
         self.save_checkpoint()
         return self.finish()
 
-    def finish(self, recipe: dict | None = None) -> Path:
+    def finish(self, recipe: dict | None = None, evaluation_steps: int | None = None) -> Path:
         """Final evaluation on unseen seeds, then export policy.pt with its provenance.
 
         ``recipe``: the stages of the recipe this run ends (:mod:`sitl.learn.recipe`), recorded in
         the provenance with the recipe's wall time from its first update to this export.
+        ``evaluation_steps``: the final evaluation's time limit (default: the training episodes').
         """
         cfg, k = self.cfg, self.counters
         finish_started = time.perf_counter()
@@ -513,8 +518,10 @@ class Trainer:
             self.validate(write=self.log)
             self.save_checkpoint()  # its history (and learning curve) now include that validation
         selected = self._restore_best_snapshot() if cfg.select_best else None
-        self.log(f"final evaluation: {cfg.final_eval_episodes} episodes, seeds >= {EVAL_SEED_OFFSET}")
-        summaries = self.evaluate(cfg.final_eval_episodes) if cfg.final_eval_episodes else {}
+        eval_steps = evaluation_steps or cfg.max_episode_steps
+        self.log(f"final evaluation: {cfg.final_eval_episodes} episodes of at most {eval_steps} steps, "
+                 f"seeds >= {EVAL_SEED_OFFSET}")
+        summaries = self.evaluate(cfg.final_eval_episodes, max_episode_steps=eval_steps) if cfg.final_eval_episodes else {}
         before = self.initial_stage
         provenance = {
             "method": cfg.method, "scenario": cfg.scenario, "density": cfg.density, "num_uavs": cfg.num_uavs,
@@ -537,7 +544,8 @@ class Trainer:
         for i, (name, summary) in enumerate(summaries.items()):
             # The first evaluation scenario is "evaluation" (what evaluators read); others get a suffix.
             key = "evaluation" if i == 0 else f"evaluation_{name}"
-            provenance[key] = {"episodes": cfg.final_eval_episodes, "seed": EVAL_SEED_OFFSET + cfg.seed,
+            provenance[key] = {"episodes": cfg.final_eval_episodes, "max_episode_steps": eval_steps,
+                               "seed": EVAL_SEED_OFFSET + cfg.seed,
                                "scenario": name, "density": cfg.density, **summary}
         if recipe is not None:
             recipe = dict(recipe)
