@@ -5,7 +5,8 @@ import math
 
 import numpy as np
 
-from sitl.eval.collision_anatomy import analyse, in_view, main
+from sitl.eval.collision_anatomy import analyse, main
+from sitl.eval.visibility import in_view
 from sitl.sim.config import ScenarioConfig
 from sitl.eval.evaluate import EvalSettings
 

@@ -99,3 +99,28 @@ def test_a_stage_is_validated_only_on_the_scenes_it_trains_on():
     assert scenes(circle_fraction=0.3, obstacle_fraction=0.2) == ("random", "circle", "obstacles")
     assert scenes(circle_fraction=0.5) == ("random", "circle")
     assert evaluation_scenarios(resolve_configs({"scenario": "circle"}, {})[0]) == ("circle",)
+
+
+def test_a_finished_recipe_that_gained_a_stage_continues_with_it(tmp_path):
+    """flown-fast gained a fourth stage after three seeds had finished three: they continue, not restart."""
+    cfg, agent_cfg = tiny_configs(tmp_path)
+    Recipe(cfg, agent_cfg, STAGES[:1], tmp_path, rescore_top=1, rescore_episodes=2).run()
+    finished = json.loads((tmp_path / RECIPE_FILE).read_text())
+    assert finished["done"] and finished["wall_s"] > finished["stages"][0]["wall_s"]  # rescoring and export
+
+    messages: list[str] = []
+    path = Recipe(cfg, agent_cfg, STAGES, tmp_path, rescore_top=2, rescore_episodes=2, log=messages.append,
+                  evaluation_steps=45).run()
+    assert not any(m.startswith("=== stage 1/") for m in messages) and any("continuing" in m for m in messages)
+    state = json.loads((tmp_path / RECIPE_FILE).read_text())
+    assert state["done"] and [s["name"] for s in state["stages"]] == ["first", "second"]
+    second = json.loads((tmp_path / "stage2-second" / "config.json").read_text())
+    assert second["train"]["init_from"] == finished["stages"][0]["snapshot"]
+    provenance = load_policy(path).metadata["provenance"]
+    # the first export's rescoring and evaluation are not counted in the continued recipe's time
+    stage_time = sum(s["wall_s"] for s in state["stages"])
+    assert stage_time <= provenance["recipe"]["wall_time_s"] <= state["wall_s"]
+    assert state["wall_s"] - provenance["recipe"]["wall_time_s"] < 10.0  # recipe.json agrees with policy.json
+    # rescoring and the final evaluation fly the recipe's evaluation time limit, not training's 30 steps
+    assert provenance["selected_snapshot"]["rescored"]["max_episode_steps"] == 45
+    assert provenance["evaluation"]["max_episode_steps"] == 45

@@ -386,6 +386,9 @@ def parse_flown_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--no-jsbsim", dest="jsbsim", action="store_false", help="leave the JSBSim cell out")
     parser.add_argument("--seed", type=int_range(0), default=0,
                         help=f"evaluation seed; the simulator uses {EVAL_SEED_OFFSET} + SEED, disjoint from training")
+    parser.add_argument("--camera", type=camera_preset, default=None,
+                        help="camera preset the UAVs carry: paper or realsense_d435 (default: the policy's own, "
+                             "paper for the references; orca-fov avoids what this camera covers)")
     parser.add_argument("--camera-noise", action=argparse.BooleanOptionalAction, default=True,
                         help="stereo depth noise and dropouts (default on: a real camera)")
     parser.add_argument("--max-steps", type=int_range(1, MAX_EPISODE_STEPS), default=DEFAULT_TASK_SPEC.max_episode_steps,
@@ -414,7 +417,7 @@ def flown_main(argv: list[str] | None = None) -> int:
 
         torch.set_num_threads(args.threads)
     cells = flown_cells(args.episodes, args.seed, args.camera_noise, max_steps=args.max_steps, batch=args.batch,
-                        jsbsim=args.jsbsim, jsbsim_episodes=args.jsbsim_episodes)
+                        jsbsim=args.jsbsim, jsbsim_episodes=args.jsbsim_episodes, camera=args.camera)
     try:
         result = run_flown(args.out, cells, methods, args.progress)
     except (EvaluationError, OSError) as err:

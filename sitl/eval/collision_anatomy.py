@@ -8,6 +8,7 @@ collision. Collisions neither UAV could see coming are out of reach of any polic
 sees only its own camera; collisions the collider saw are the policy's to avoid.
 
     python -m sitl.collision_anatomy --scenario random --density medium --episodes 100
+    python -m sitl.collision_anatomy --protocol flown --cell random-medium --episodes 100
 
 Prints a table and writes ``--json`` if given. Geometry test: the partner's centre inside
 the camera's horizontal and vertical field of view (heading frame, level camera as in the
@@ -25,27 +26,17 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.frames import ned_to_frd
 from sitl.sim.config import CIRCLE_RADIUS_M, DENSITIES, ScenarioConfig, SimConfig
 from sitl.sim.env import COLLISION_UAV, SwarmEnv
 from sitl.eval.evaluate import EvalSettings, evaluate_method, sim_config_for
+from sitl.eval.flown import flown_cells
 from sitl.eval.methods import DEFAULT_POLICY, EvaluationError, resolve_method
+from sitl.eval.visibility import camera_fov_rad, in_view
 
+#: The flown protocol's cells this tool can fly (the JSBSim cell is left out: the kinematic model is what it observes).
+FLOWN_CELLS = tuple(c.name for c in flown_cells(episodes=1, jsbsim=False))
 LOOKBACK_S = 1.0  # "could have seen it coming": in view at some step of this window before the collision
 TIME_BINS_S = (1.0, 2.0, 5.0)  # collision time since the episode start, for the table
-
-
-def in_view(pos_ned: np.ndarray, yaw_rad: np.ndarray, other_ned: np.ndarray, hfov_rad: float, vfov_rad: float,
-            max_range_m: float) -> np.ndarray:
-    """Whether each ``other_ned`` point lies in the level camera frustum of the UAV at ``pos_ned``/``yaw_rad``.
-
-    Shapes broadcast: ``pos_ned``/``other_ned`` [..., 3], ``yaw_rad`` [...].
-    """
-    d = other_ned - pos_ned
-    d_frd = ned_to_frd(d, yaw_rad)
-    fwd, right, down = d_frd[..., 0], d_frd[..., 1], d_frd[..., 2]
-    return ((fwd > 0) & (np.abs(np.arctan2(right, fwd)) <= hfov_rad / 2)
-            & (np.abs(np.arctan2(down, fwd)) <= vfov_rad / 2) & (np.linalg.norm(d, axis=-1) <= max_range_m))
 
 
 class CollisionObserver:
@@ -58,8 +49,7 @@ class CollisionObserver:
 
     def __init__(self, config: SimConfig) -> None:
         cam = config.camera
-        self.hfov = math.radians(cam.hfov_deg)
-        self.vfov = 2 * math.atan(math.tan(self.hfov / 2) * cam.height / cam.width)
+        self.hfov, self.vfov = camera_fov_rad(cam)  # a real sensor's (e.g. the D435's 87 x 58 deg) or square pixels'
         self.max_range_m = cam.max_range_m
         self.dt = config.control_period_s
         self.n = config.num_uavs
@@ -154,6 +144,11 @@ def format_table(result: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m sitl.collision_anatomy", description=__doc__.split("\n\n")[0])
     parser.add_argument("--policy", default=str(DEFAULT_POLICY), help="policy file or baseline name")
+    parser.add_argument("--protocol", choices=("paper", "flown"), default="paper",
+                        help="paper: the scene given by --scenario/--density/--radius/--n (paper geometry, "
+                             "perfect depth); flown: one cell of `swarm_test flown` (--cell), as it flies it")
+    parser.add_argument("--cell", choices=FLOWN_CELLS, default="random-medium",
+                        help="the flown protocol's cell (with --protocol flown)")
     parser.add_argument("--scenario", choices=("random", "circle"), default="random")
     parser.add_argument("--density", choices=tuple(DENSITIES), default="medium")
     parser.add_argument("--radius", type=float, default=CIRCLE_RADIUS_M, help="circle radius (m)")
@@ -164,9 +159,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.episodes < 1 or args.n < 2:
         parser.error("--episodes must be at least 1 and --n at least 2")
-    scenario = ScenarioConfig(name=args.scenario, density=DENSITIES[args.density], circle_radius_m=args.radius)
-    settings = EvalSettings(scenario=scenario, num_uavs=args.n, episodes=args.episodes, seed=args.seed,
-                            record_paths=False)
+    if args.protocol == "flown":
+        settings = next(c.settings for c in flown_cells(args.episodes, args.seed, jsbsim=False) if c.name == args.cell)
+    else:
+        scenario = ScenarioConfig(name=args.scenario, density=DENSITIES[args.density], circle_radius_m=args.radius)
+        settings = EvalSettings(scenario=scenario, num_uavs=args.n, episodes=args.episodes, seed=args.seed,
+                                record_paths=False)
     try:
         result = analyse(args.policy, settings, progress=True)
     except EvaluationError as err:

@@ -48,10 +48,11 @@ class FlownCell:
 
 def flown_cells(episodes: int = DEFAULT_EPISODES, seed: int = 0, camera_noise: bool = True,
                 noise_model: StereoNoise | None = None, max_steps: int = 400, batch: int = 100,
-                jsbsim: bool = True, jsbsim_episodes: int | None = None) -> list[FlownCell]:
+                jsbsim: bool = True, jsbsim_episodes: int | None = None, camera: str | None = None) -> list[FlownCell]:
     """The protocol's cells (see the module doc); ``noise_model`` is the camera's error model (default
-    :class:`StereoNoise`), ``jsbsim_episodes`` the JSBSim cell's episodes (default ``episodes``)."""
-    common = dict(num_uavs=PROTOCOL_N, episodes=episodes, seed=seed, camera_noise=camera_noise,
+    :class:`StereoNoise`), ``jsbsim_episodes`` the JSBSim cell's episodes (default ``episodes``),
+    ``camera`` the camera preset the UAVs carry (default: the policy's own, the paper camera for references)."""
+    common = dict(num_uavs=PROTOCOL_N, episodes=episodes, seed=seed, camera_noise=camera_noise, camera=camera,
                   noise_model=noise_model or StereoNoise(), max_episode_steps=max_steps, batch_worlds=batch,
                   record_paths=False)
     cells = [FlownCell(f"random-{name}", EvalSettings(scenario=scenario_for("flown", "random", density=density),

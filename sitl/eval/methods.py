@@ -1,6 +1,6 @@
 """What flies the swarm in an evaluation: a policy file or a reference controller, as a :class:`Method`.
 
-``resolve_method("straight" | "orca" | PATH)`` loads and checks it; ``Method.make_actor(env)``
+``resolve_method("straight" | "orca" | "orca-fov" | PATH)`` loads and checks it; ``Method.make_actor(env)``
 builds its :data:`sitl.sim.episodes.Actor` for one environment.
 """
 
@@ -20,7 +20,9 @@ from sitl.sim.episodes import Actor, ActorFactory
 DEFAULT_POLICY = Path("models/policy.pt")
 
 
-BASELINES = ("straight", "orca")
+BASELINES = ("straight", "orca", "orca-fov")
+#: The ORCA references (sitl.eval.orca): all UAVs known, or only those in the camera's view.
+ORCA_BASELINES = ("orca", "orca-fov")
 
 
 class EvaluationError(ValueError):
@@ -45,7 +47,7 @@ class Method:
         if self.path:
             out |= {"path": self.path, "sha256": file_digest(self.path),
                     "camera": self.camera.to_dict() if self.camera else None, "provenance": self.provenance}
-        if self.kind == "baseline" and self.label == "orca":
+        if self.kind == "baseline" and self.label in ORCA_BASELINES:
             from sitl.eval.orca import OrcaParams
 
             out["orca"] = dataclasses.asdict(OrcaParams())
@@ -57,10 +59,10 @@ class Method:
             from sitl.sim.baselines import straight_actor
 
             return straight_actor(env)
-        if self.label == "orca" and self.kind == "baseline":
+        if self.label in ORCA_BASELINES and self.kind == "baseline":
             from sitl.eval.orca import orca_actor
 
-            return orca_actor(env)
+            return orca_actor(env, camera_limited=self.label == "orca-fov")
         return policy_actor(self._policy)(env)
 
 
@@ -119,13 +121,14 @@ def file_digest(path: str | Path) -> str:
 def missing_policy_message(path: str | Path) -> str:
     return (f"policy file {path} not found. Train one (python -m sitl.train, which writes RUN_DIR/policy.pt, "
             f"then copy it to {DEFAULT_POLICY}) or choose another controller: --policy straight (no avoidance), "
-            "--policy orca (privileged ORCA) or --policy PATH (a policy file)")
+            "--policy orca (privileged ORCA), --policy orca-fov (ORCA knowing only the UAVs in its camera's view) "
+            "or --policy PATH (a policy file)")
 
 
 def resolve_method(spec: str | Path) -> Method:
-    """``straight``, ``orca`` or a policy file (loaded and validated) as a :class:`Method`."""
+    """``straight``, ``orca``, ``orca-fov`` or a policy file (loaded and validated) as a :class:`Method`."""
     if str(spec) in BASELINES:
-        if str(spec) == "orca":
+        if str(spec) in ORCA_BASELINES:
             from sitl.eval.orca import _import_rvo
 
             try:

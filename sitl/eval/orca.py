@@ -12,6 +12,13 @@ UAVs only fly forward along their heading, turn at up to 0.5 rad/s, climb at up 
 the policy's command space (:func:`velocity_to_action`) and the gap is absorbed by a
 radius margin above the collision radius R, as a real deployment of ORCA on multicopters
 would do.
+
+``orca-fov`` (:func:`orca_fov_actor`) is the same ORCA limited to what the UAV's own camera
+covers: each UAV avoids only the UAVs whose centres are inside its camera frustum (field of
+view and range, :mod:`sitl.eval.visibility`) at that step, and the others no longer
+reciprocate reliably since they may not see it. It still knows those UAVs' exact positions
+and velocities, so it bounds what avoidance can do with a forward camera's *view*, not with
+its pixels: the gap between ``orca`` and ``orca-fov`` is what the field of view alone costs.
 """
 
 from __future__ import annotations
@@ -21,7 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.frames import ned_to_frd
-from companion.spec import DEFAULT_ACTION_SPEC, ActionSpec
+from companion.spec import DEFAULT_ACTION_SPEC, ActionSpec, CameraSpec
+from sitl.eval.visibility import camera_fov_rad, in_view
 
 
 @dataclass(frozen=True)
@@ -102,9 +110,10 @@ class OrcaController:
 
     def __init__(self, num_worlds: int, uavs_per_world: int, collision_radius_m: float,
                  control_period_s: float, params: OrcaParams = OrcaParams(),
-                 spec: ActionSpec = DEFAULT_ACTION_SPEC) -> None:
+                 spec: ActionSpec = DEFAULT_ACTION_SPEC, camera: CameraSpec | None = None) -> None:
+        """``camera``: avoid only the UAVs inside this camera's frustum (``orca-fov``); None: all of them."""
         rvo = _import_rvo()
-        self.params, self.spec = params, spec
+        self.params, self.spec, self.camera = params, spec, camera
         self.n = uavs_per_world
         radius = collision_radius_m + params.radius_margin_m
         self._sims = []
@@ -116,46 +125,67 @@ class OrcaController:
             self._sims.append(sim)
 
     @classmethod
-    def for_env(cls, env, params: OrcaParams = OrcaParams()) -> "OrcaController":
+    def for_env(cls, env, params: OrcaParams = OrcaParams(), camera_limited: bool = False) -> "OrcaController":
+        """ORCA for ``env``; ``camera_limited``: each UAV avoids only what ``env``'s camera covers (``orca-fov``)."""
         cfg = env.config
         return cls(env.num_worlds, env.uavs_per_world, cfg.collision_radius_m, cfg.control_period_s, params,
-                   env.action_spec)
+                   env.action_spec, cfg.camera if camera_limited else None)
+
+    def _load(self, sim, b: int, pos_ned: np.ndarray, vel: np.ndarray, pref: np.ndarray, known: np.ndarray) -> None:
+        """World ``b``'s UAVs into its simulator; those not ``known`` (gone, or out of view) parked far away."""
+        for i in range(self.n):
+            r = b * self.n + i
+            if known[i]:
+                sim.setAgentPosition(i, tuple(pos_ned[r]))
+                sim.setAgentVelocity(i, tuple(vel[r]))
+            else:
+                sim.setAgentPosition(i, (self._PARK_M + 1000.0 * i, self._PARK_M, 0.0))
+                sim.setAgentVelocity(i, (0.0, 0.0, 0.0))
+            sim.setAgentPrefVelocity(i, tuple(pref[r]))
 
     def new_velocities(self, pos_ned: np.ndarray, vel_ned: np.ndarray, goal_ned: np.ndarray,
-                       acting: np.ndarray, present: np.ndarray) -> np.ndarray:
-        """ORCA's collision-free velocities [M, 3] (NED) for the acting UAVs (zero elsewhere)."""
+                       acting: np.ndarray, present: np.ndarray, yaw_rad: np.ndarray | None = None) -> np.ndarray:
+        """ORCA's collision-free velocities [M, 3] (NED) for the acting UAVs (zero elsewhere).
+
+        With a ``camera`` each acting UAV is solved on its own, knowing only itself and the
+        present UAVs inside its camera frustum (``yaw_rad`` [M] gives the headings).
+        """
         pref = preferred_velocity(pos_ned, goal_ned, self.params, self.spec)
         pref[~acting] = 0.0
         vel = np.where(acting[:, None], vel_ned, 0.0)  # hovering UAVs: static obstacles
         out = np.zeros_like(pos_ned)
         n = self.n
+        if self.camera is not None:
+            hfov, vfov = camera_fov_rad(self.camera)
         for b, sim in enumerate(self._sims):
             rows = slice(b * n, (b + 1) * n)
             if not acting[rows].any():
                 continue
-            for i in range(n):
-                r = b * n + i
-                if present[r]:
-                    sim.setAgentPosition(i, tuple(pos_ned[r]))
-                    sim.setAgentVelocity(i, tuple(vel[r]))
-                else:
-                    sim.setAgentPosition(i, (self._PARK_M + 1000.0 * i, self._PARK_M, 0.0))
-                    sim.setAgentVelocity(i, (0.0, 0.0, 0.0))
-                sim.setAgentPrefVelocity(i, tuple(pref[r]))
-            sim.doStep()  # computes the new velocities (it also moves its own copies; we overwrite them)
-            for i in range(n):
-                if acting[b * n + i]:
-                    out[b * n + i] = sim.getAgentVelocity(i)
+            if self.camera is None:
+                self._load(sim, b, pos_ned, vel, pref, present[rows])
+                sim.doStep()  # computes the new velocities (it also moves its own copies; we overwrite them)
+                for i in np.flatnonzero(acting[rows]):
+                    out[b * n + i] = sim.getAgentVelocity(int(i))
+                continue
+            p, yaw = pos_ned[rows], yaw_rad[rows]
+            seen = in_view(p[:, None], yaw[:, None], p[None, :], hfov, vfov, self.camera.max_range_m)  # [i, j]
+            for i in np.flatnonzero(acting[rows]):
+                known = seen[i] & present[rows]
+                known[i] = True
+                self._load(sim, b, pos_ned, vel, pref, known)
+                sim.doStep()
+                out[b * n + i] = sim.getAgentVelocity(int(i))
         return out
 
     def act_env(self, env) -> np.ndarray:
         """Actions [M, 3] for every UAV of ``env`` from its true state."""
         d = env.dynamics
-        vel = self.new_velocities(d.pos_ned, d.vel_ned, env.goal_ned, env.acting, env.present)
+        vel = self.new_velocities(d.pos_ned, d.vel_ned, env.goal_ned, env.acting, env.present, d.yaw_rad)
         return velocity_to_action(vel, d.yaw_rad, self.params, self.spec)
 
 
-def orca_actor(env, params: OrcaParams = OrcaParams()):
-    """Privileged ORCA as an :data:`sitl.sim.episodes.Actor` for ``env`` (an ``ActorFactory``): it reads the true states."""
-    controller = OrcaController.for_env(env, params)
+def orca_actor(env, params: OrcaParams = OrcaParams(), camera_limited: bool = False):
+    """ORCA as an :data:`sitl.sim.episodes.Actor` for ``env`` (an ``ActorFactory``): it reads the true states,
+    of every UAV (privileged) or, ``camera_limited``, of those in each UAV's camera frustum (``orca-fov``)."""
+    controller = OrcaController.for_env(env, params, camera_limited)
     return lambda obs: controller.act_env(env)

@@ -190,7 +190,7 @@ class Recipe:
         saved = json.loads((sdir / "config.json").read_text())
         cfg = replace(TrainConfig(**saved["train"]), final_eval_episodes=self.final_eval_episodes)
         trainer = make_trainer(cfg, AgentConfig(**saved["agent"]), sdir, resume=True)
-        self.state["wall_s"] = self._elapsed()  # the export's own evaluation is added below
+        self._checkpoint_state()  # the time so far (the rescoring included); the export's evaluation is added below
         recipe = {"preset": self.cfg.preset, "scale": self.scale, "stages": self.state["stages"],
                   "rescore": {"top": self.rescore_top, "episodes": self.rescore_episodes},
                   "wall_time_s_before_final_evaluation": round(self.state["wall_s"], 1)}
