@@ -137,6 +137,37 @@ def test_orca_velocity_maps_onto_the_command_limits():
 
 
 @needs_rvo
+def test_orca_fov_avoids_only_the_uavs_its_camera_covers():
+    """Head-on the two UAVs see each other and both give way; one closing in from behind is
+    invisible to the UAV ahead, which then keeps its preferred velocity (full ORCA does not)."""
+    from companion.spec import REALSENSE_D435
+    from sitl.eval.orca import OrcaController
+
+    # UAV 0 flies north at 1.5 m/s towards its goal 1 m ahead (preferred: 1 m/s, slowing down for
+    # it); UAV 1 comes south at it from 3 m ahead
+    # (0.1 m aside: an exactly head-on pair is degenerate for RVO2-3D, which then does nothing);
+    # UAV 2 closes in from 2 m behind at 2 m/s. All at 5 m altitude (NED down = -5).
+    pos = np.array([[0.0, 0.0, -5.0], [3.0, 0.1, -5.0], [-2.0, 0.05, -5.0]])
+    vel = np.array([[1.5, 0.0, 0.0], [-1.5, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    goal = np.array([[1.0, 0.0, -5.0], [-20.0, 0.1, -5.0], [20.0, 0.05, -5.0]])
+    yaw = np.array([0.0, math.pi, 0.0])
+
+    def solve(camera, rows):
+        ctl = OrcaController(1, 3, 0.3, 0.1, camera=camera)
+        known = np.zeros(3, dtype=bool)
+        known[rows] = True  # the others are removed from the world
+        return ctl.new_velocities(pos, vel, goal, known, known, yaw)
+
+    pref = np.array([[1.0, 0.0, 0.0], [-2.0, 0.0, 0.0], [2.0, 0.0, 0.0]])  # at the goal, cruise, cruise
+    ahead = solve(REALSENSE_D435, [0, 1])
+    assert np.linalg.norm(ahead[0] - pref[0]) > 0.1 and np.linalg.norm(ahead[1] - pref[1]) > 0.1  # both give way
+    behind_fov, behind_all = solve(REALSENSE_D435, [0, 2]), solve(None, [0, 2])
+    np.testing.assert_allclose(behind_fov[0], pref[0], atol=1e-3)  # UAV 2 is behind UAV 0's camera
+    assert np.linalg.norm(behind_all[0] - pref[0]) > 0.1  # privileged ORCA makes room for it
+    assert np.linalg.norm(behind_fov[2] - pref[2]) > 0.01  # UAV 2 sees UAV 0 ahead and (expecting help) slows a little
+
+
+@needs_rvo
 def test_orca_solves_the_circle_of_eight_without_collision():
     settings = EvalSettings(scenario=ScenarioConfig(name="circle"), num_uavs=8, episodes=4, seed=1)
     orca = evaluate_method(resolve_method("orca"), settings, progress=False)
