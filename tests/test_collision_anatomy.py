@@ -4,6 +4,7 @@ import json
 import math
 
 import numpy as np
+import pytest
 
 from sitl.eval.collision_anatomy import analyse, main
 from sitl.eval.visibility import in_view
@@ -65,3 +66,19 @@ def test_worlds_that_restart_give_the_same_anatomy_as_all_at_once():
     all_at_once = events(12)
     assert len(all_at_once) >= 4  # straight flight in the random scene collides now and then
     assert events(5) == all_at_once
+
+
+def test_a_flown_cell_is_flown_with_the_cameras_real_vertical_field_of_view(tmp_path):
+    """--protocol flown flies the protocol's cell; the D435's 58 deg vertical FOV is the frustum, not 87 deg."""
+    from companion.spec import REALSENSE_D435
+    from sitl.eval.collision_anatomy import CollisionObserver
+    from sitl.sim.config import SimConfig
+
+    observer = CollisionObserver(SimConfig(num_uavs=2, num_worlds=1, camera=REALSENSE_D435))
+    assert math.degrees(observer.vfov) == pytest.approx(58.0)
+    out = tmp_path / "flown.json"
+    assert main(["--policy", "straight", "--protocol", "flown", "--cell", "random-medium", "--episodes", "6",
+                 "--json", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert "at 1.5-15 m" in result["scenario"] and result["uav_episodes"] == 48
+    assert math.isclose(result["collisions"] / result["uav_episodes"], result["collision_uav_rate"])
