@@ -257,3 +257,55 @@ def test_a_second_stage_continues_the_learning_curve_with_its_boundary(tmp_path)
     assert min(two["episode"][len(one["episode"]):]) > boundary
     assert two["eval_episode"][-1] >= boundary and len(two["eval_success"]) == len(one["eval_success"]) + 1 == 3
     assert (tmp_path / "two" / "learning_curve.png").stat().st_size > 10_000
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@needs_ray
+@pytest.mark.timeout(600)
+def test_the_same_sweep_joins_an_existing_cluster_by_its_address(tmp_path):
+    """A Ray head started with `ray start --head` (on loopback) is the existing cluster; the sweep
+    joins it with --address, ships the code as py_modules, and the runs land in the same folders."""
+    import signal
+    import socket
+    import time
+
+    port = _free_port()
+    head = subprocess.Popen(
+        [sys.executable, "-m", "ray.scripts.scripts", "start", "--head", "--block", f"--port={port}",
+         "--num-cpus=2", "--node-ip-address=127.0.0.1", "--include-dashboard=false", "--disable-usage-stats"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True, env=_env())
+    try:
+        deadline = time.monotonic() + 120
+        while True:  # the head's GCS takes 5-20 s to listen
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=1).close()
+                break
+            except OSError:
+                if head.poll() is not None or time.monotonic() > deadline:
+                    raise AssertionError(f"ray start --head did not come up: {head.stdout.read()[-2000:]}")
+                time.sleep(0.5)
+        out = tmp_path / "sweep"
+        proc = subprocess.run([sys.executable, "-m", "sitl.sweep", "--address", f"127.0.0.1:{port}", "--seeds", "0",
+                               "--out", str(out), "--eval", "paper:random-medium", "--eval-episodes", "2",
+                               "--", *TINY_TRAIN], capture_output=True, text=True, env=_env(), cwd=tmp_path,
+                              timeout=480)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        assert "Ray: 2 CPUs on 1 node(s)" in proc.stderr  # the head's (with an address Ray never starts its own)
+        final = json.loads((out / "s0" / "final_eval.json").read_text())
+        assert final["updates"] == 15 and (out / "s0" / "policy.pt").stat().st_size > 0
+        table = json.loads((out / "sweep.json").read_text())
+        assert table["runs"][0]["result"]["eval_success"]["paper:random-medium"] is not None
+    finally:
+        os.killpg(head.pid, signal.SIGTERM)  # the head and every Ray process it started
+        try:
+            head.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            os.killpg(head.pid, signal.SIGKILL)
+            head.wait(timeout=30)

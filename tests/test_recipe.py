@@ -124,3 +124,13 @@ def test_a_finished_recipe_that_gained_a_stage_continues_with_it(tmp_path):
     # rescoring and the final evaluation fly the recipe's evaluation time limit, not training's 30 steps
     assert provenance["selected_snapshot"]["rescored"]["max_episode_steps"] == 45
     assert provenance["evaluation"]["max_episode_steps"] == 45
+
+    # Another final choice (here more rescoring episodes) on the finished run: no stage runs again,
+    # the rescoring made under the old settings is redone and the policy exported again.
+    messages.clear()
+    Recipe(cfg, agent_cfg, STAGES, tmp_path, rescore_top=2, rescore_episodes=3, log=messages.append,
+           evaluation_steps=45).run()
+    assert not any(m.startswith("=== stage") for m in messages) and any("continuing" in m for m in messages)
+    rows = json.loads((tmp_path / "stage2-second" / "snapshots" / "validation.json").read_text())
+    assert sorted(r["rescored"]["episodes"] for r in rows if "rescored" in r) == [3, 3]
+    assert load_policy(tmp_path / "policy.pt").metadata["provenance"]["selected_snapshot"]["rescored"]["episodes"] == 3

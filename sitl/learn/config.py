@@ -198,15 +198,14 @@ PRESETS: dict[str, dict] = {
     # updated every second update (reference: every update): an update at 32x20 is 1.6x
     # cheaper (`benchmarks/train_speed.py`, docs/training.md "flown-fast"). Validation
     # is sparser and the export's evaluation shorter; `python -m sitl.swarm_test flown` is the
-    # full evaluation. A fourth stage at learning rates 1e-4 ("polish") follows flown's three, and
-    # the final choice flies the 3 best snapshots in all three kinds of scene with the
-    # protocol's 40 s limit: at flown's 20 s, circles of up to 20 m radius time out on the far
-    # side and their score was noise (docs/training.md "flown-fast").
+    # full evaluation. The final choice flies the last stage's 3 best snapshots in all three kinds
+    # of scene it trains on with the protocol's 40 s limit: at flown's 20 s, circles of up to 20 m
+    # radius time out on the far side and their score was noise (docs/training.md "flown-fast").
     "flown-fast": {
         "train": {"final_eval_episodes": 200},
         "agent": {"hidden_dim": 512, "decoder_update_freq": 2},
         "recipe": {"rescore_top": 3, "rescore_episodes": 100, "evaluation_steps": DEFAULT_TASK_SPEC.max_episode_steps},
-        # stages: flown's, validated less often, and the polish (below)
+        # stages: flown's, validated less often (below)
     },
     "paper": {"train": {"num_worlds": 1, "image_size": 64, "replay_capacity": 20_000, "max_episodes": 200,
                         "total_updates": 0, "updates_per_episode": 400, "updates_per_env_step": 0.0,
@@ -244,12 +243,11 @@ PRESETS["flown-fast"]["agent"] = {**PRESETS["flown"]["agent"], **PRESETS["flown-
 PRESETS["flown-fast"]["stages"] = tuple(
     dataclasses.replace(stage, train={**stage.train, **validation})
     for stage, validation in zip(PRESETS["flown"]["stages"], ({"eval_every_updates": 2_000}, {"eval_every_updates": 2_000},
-                                                              {"eval_every_updates": 1_500, "eval_episodes": 50}))) + (
-    RecipeStage("polish", "the same mix at learning rates 1e-4",
-                {**PRESETS["flown"]["stages"][-1].train, "eval_every_updates": 2_000, "eval_episodes": 50},
-                {"actor_lr": 1e-4, "critic_lr": 1e-4, "encoder_lr": 1e-4, "decoder_lr": 1e-4},
-                rescore_scenes=(("random-medium", "random", 8, "medium"), ("circle-n8", "circle", 8, "medium"),
-                                ("obstacles", "obstacles", 8, "medium"))),)
+                                                              {"eval_every_updates": 1_500, "eval_episodes": 50})))
+PRESETS["flown-fast"]["stages"] = PRESETS["flown-fast"]["stages"][:-1] + (dataclasses.replace(
+    PRESETS["flown-fast"]["stages"][-1], rescore_scenes=(("random-medium", "random", 8, "medium"),
+                                                         ("circle-n8", "circle", 8, "medium"),
+                                                         ("obstacles", "obstacles", 8, "medium"))),)
 
 
 def resolve_configs(train_values: dict, agent_values: dict) -> tuple[TrainConfig, AgentConfig]:

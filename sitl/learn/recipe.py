@@ -170,8 +170,14 @@ class Recipe:
         saved = json.loads((sdir / "config.json").read_text())
         cfg, agent_cfg = TrainConfig(**saved["train"]), AgentConfig(**saved["agent"])
         rows = _validation_rows(sdir)
-        candidates = sorted(rows, key=lambda r: (r["score"], r["updates"]), reverse=True)[:self.rescore_top]
         scenes = self.stages[index].rescore_scenes
+        steps = self.evaluation_steps or cfg.max_episode_steps
+        for row in rows:  # a rescoring under other settings (an earlier version of the recipe) is redone
+            done = row.get("rescored")
+            if done and (done.get("episodes"), done.get("max_episode_steps"), sorted(done["scenes"])) != \
+                    (self.rescore_episodes, steps, sorted(s[0] for s in scenes)):
+                del row["rescored"]
+        candidates = sorted(rows, key=lambda r: (r["score"], r["updates"]), reverse=True)[:self.rescore_top]
         for row in candidates:
             if "rescored" in row:
                 continue  # done before an interruption
@@ -204,13 +210,20 @@ class Recipe:
         """Every stage not yet done, the rescoring, the final evaluation and the export."""
         self._t0 = time.perf_counter()
         self.state.setdefault("preset", self.cfg.preset)
-        if self.state.get("done") and len(self.state["stages"]) < len(self.stages):
-            # The recipe gained stages since this run finished: its rescoring and export are
-            # superseded, so the wall time is that of its stages, and the new ones add to it.
+        final_choice = {"rescore_top": self.rescore_top, "rescore_episodes": self.rescore_episodes,
+                        "evaluation_steps": self.evaluation_steps, "final_eval_episodes": self.final_eval_episodes,
+                        "rescore_scenes": [s[0] for s in self.stages[-1].rescore_scenes]}
+        if self.state.get("done") and (len(self.state["stages"]) < len(self.stages)
+                                       or self.state.get("final_choice") != final_choice):
+            # The recipe changed since this run finished (more stages, or another final choice):
+            # its rescoring and export are superseded, so the wall time is that of its stages,
+            # and what runs now adds to it.
             self.state["wall_s"] = sum(s["wall_s"] for s in self.state["stages"])
             del self.state["done"]
-            self.log(f"{self.run_dir}: finished with {len(self.state['stages'])} stages, the recipe now has "
-                     f"{len(self.stages)}: continuing with the new ones (earlier export superseded)")
+            self.log(f"{self.run_dir}: finished under an earlier version of recipe '{self.cfg.preset}': continuing "
+                     f"with its {len(self.stages) - len(self.state['stages'])} new stage(s) and its final choice "
+                     f"(earlier export superseded)")
+        self.state["final_choice"] = final_choice
         _save_state(self.run_dir, self.state)  # a resume before the first stage ends knows the scale too
         self.log(f"recipe '{self.cfg.preset}': {len(self.stages)} stages, "
                  f"{sum(s.train.get('total_updates', self.cfg.total_updates) for s in self.stages)} updates in all; "
