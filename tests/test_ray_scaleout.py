@@ -276,11 +276,15 @@ def test_the_same_sweep_joins_an_existing_cluster_by_its_address(tmp_path):
     import socket
     import time
 
+    import secrets
+
     port = _free_port()
+    # Ray >= 2.59 authenticates with a token; a cluster's users get it with its address (docs/training.md).
+    env = {**_env(), "RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(16)}
     head = subprocess.Popen(
         [sys.executable, "-m", "ray.scripts.scripts", "start", "--head", "--block", f"--port={port}",
          "--num-cpus=2", "--node-ip-address=127.0.0.1", "--include-dashboard=false", "--disable-usage-stats"],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True, env=_env())
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True, env=env)
     try:
         deadline = time.monotonic() + 120
         while True:  # the head's GCS takes 5-20 s to listen
@@ -294,7 +298,7 @@ def test_the_same_sweep_joins_an_existing_cluster_by_its_address(tmp_path):
         out = tmp_path / "sweep"
         proc = subprocess.run([sys.executable, "-m", "sitl.sweep", "--address", f"127.0.0.1:{port}", "--seeds", "0",
                                "--out", str(out), "--eval", "paper:random-medium", "--eval-episodes", "2",
-                               "--", *TINY_TRAIN], capture_output=True, text=True, env=_env(), cwd=tmp_path,
+                               "--", *TINY_TRAIN], capture_output=True, text=True, env=env, cwd=tmp_path,
                               timeout=480)
         assert proc.returncode == 0, proc.stderr[-3000:]
         assert "Ray: 2 CPUs on 1 node(s)" in proc.stderr  # the head's (with an address Ray never starts its own)
