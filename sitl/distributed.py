@@ -78,8 +78,10 @@ def connect(address: str | None = LOCAL, num_cpus: int | None = None, log_to_dri
     for attempt in range(2 if local else 1):
         try:
             if local:
-                ray.init(num_cpus=num_cpus, include_dashboard=False, runtime_env={"env_vars": env_vars},
-                         log_to_driver=log_to_driver, logging_level="warning")
+                # address="local": a Ray of our own even where `ray start` ran on this machine before
+                # (without it ray.init joins that cluster, or fails on its stale address file).
+                ray.init(address="local", num_cpus=num_cpus, include_dashboard=False,
+                         runtime_env={"env_vars": env_vars}, log_to_driver=log_to_driver, logging_level="warning")
             else:
                 ray.init(address=address, runtime_env={"env_vars": env_vars, "py_modules": [str(p) for p in packages]},
                          log_to_driver=log_to_driver, logging_level="warning")
