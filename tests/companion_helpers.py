@@ -84,6 +84,19 @@ def _ephemeral_low() -> int:
         return 32768
 
 
+def free_tcp_port() -> int:
+    """A TCP port on 127.0.0.1 nobody listens on, below the ephemeral range."""
+    rng = random.Random(os.getpid() ^ time.monotonic_ns())
+    while True:
+        port = rng.randrange(41000, 45000)
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+        return port
+
+
 #: every port free_udp_ports has handed out in this process
 _HANDED_OUT: set[int] = set()
 

@@ -8,9 +8,7 @@ which is where the issue's failures were seen.
 
 from __future__ import annotations
 
-import math
 import os
-import random
 import signal
 import socket
 import threading
@@ -23,22 +21,9 @@ from companion.cli import parse_args as companion_args
 from companion.depth_wire import encode_frame
 from companion.spec import CameraSpec
 from sitl.realtime.vehicle import parse_args as vehicle_args
-from tests.companion_helpers import GroundStation, Processes, free_udp_ports, make_policy, read_jsonl
+from tests.companion_helpers import GroundStation, Processes, free_tcp_port, free_udp_ports, make_policy, read_jsonl
 
 pytestmark = pytest.mark.timeout(240)
-
-
-def free_tcp_port() -> int:
-    """A TCP port on 127.0.0.1 nobody listens on, below the ephemeral range."""
-    rng = random.Random(os.getpid() ^ time.monotonic_ns())
-    while True:
-        port = rng.randrange(41000, 45000)
-        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-            try:
-                s.bind(("127.0.0.1", port))
-            except OSError:
-                continue
-        return port
 
 
 class Flight:

@@ -259,14 +259,6 @@ def test_a_second_stage_continues_the_learning_curve_with_its_boundary(tmp_path)
     assert (tmp_path / "two" / "learning_curve.png").stat().st_size > 10_000
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @needs_ray
 @pytest.mark.timeout(600)
 def test_the_same_sweep_joins_an_existing_cluster_by_its_address(tmp_path):
@@ -278,7 +270,9 @@ def test_the_same_sweep_joins_an_existing_cluster_by_its_address(tmp_path):
 
     import secrets
 
-    port = _free_port()
+    from tests.companion_helpers import free_tcp_port
+
+    port = free_tcp_port()
     # Ray >= 2.59 authenticates with a token; a cluster's users get it with its address (docs/training.md).
     env = {**_env(), "RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(16)}
     head = subprocess.Popen(

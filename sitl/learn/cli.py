@@ -37,7 +37,7 @@ from pathlib import Path
 from sitl.cli_args import ArgumentParser, finite_float, integer, positive_float
 from sitl.learn.agent import AgentConfig
 from sitl.learn.config import PRESETS, TrainConfig, resolve_configs
-from sitl.learn.recipe import RECIPE_FILE, Recipe, scaled_stages
+from sitl.learn.recipe import RECIPE_FILE, Recipe
 from sitl.learn.trainer import make_trainer
 
 PROG = "python -m sitl.train"
