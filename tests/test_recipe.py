@@ -124,6 +124,8 @@ def test_a_finished_recipe_that_gained_a_stage_continues_with_it(tmp_path):
     # rescoring and the final evaluation fly the recipe's evaluation time limit, not training's 30 steps
     assert provenance["selected_snapshot"]["rescored"]["max_episode_steps"] == 45
     assert provenance["evaluation"]["max_episode_steps"] == 45
+    assert provenance["recipe"]["rescore"] == {"top": 2, "episodes": 2, "scenes": ["random-medium"],
+                                               "max_episode_steps": 45}
 
     # Another final choice (here more rescoring episodes) on the finished run: no stage runs again,
     # the rescoring made under the old settings is redone and the policy exported again.

@@ -198,7 +198,9 @@ class Recipe:
         trainer = make_trainer(cfg, AgentConfig(**saved["agent"]), sdir, resume=True)
         self._checkpoint_state()  # the time so far (the rescoring included); the export's evaluation is added below
         recipe = {"preset": self.cfg.preset, "scale": self.scale, "stages": self.state["stages"],
-                  "rescore": {"top": self.rescore_top, "episodes": self.rescore_episodes},
+                  "rescore": {"top": self.rescore_top, "episodes": self.rescore_episodes,
+                              "scenes": [s[0] for s in self.stages[index].rescore_scenes],
+                              "max_episode_steps": self.evaluation_steps or cfg.max_episode_steps},
                   "wall_time_s_before_final_evaluation": round(self.state["wall_s"], 1)}
         path = trainer.finish(recipe=recipe, evaluation_steps=self.evaluation_steps)
         for name in ("policy.pt", "final_eval.json"):  # the recipe draws its own learning curve
