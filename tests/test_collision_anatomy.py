@@ -46,14 +46,16 @@ def test_head_on_collisions_are_seen_by_both(tmp_path, capsys):
 
 
 def test_bad_arguments_are_refused(capsys):
-    for argv in (["--episodes", "0"], ["--n", "1"], ["--density", "huge"]):
+    for argv in (["--episodes", "0"], ["--n", "1"], ["--density", "huge"], ["--protocol", "flown", "--n=4"],
+                 ["--protocol", "flown", "--cell", "moon"]):
         try:
             main(argv)
         except SystemExit as exit_:
             assert exit_.code == 2
         else:
             raise AssertionError(f"{argv} accepted")
-    assert "--episodes must be at least 1" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "--episodes must be at least 1" in err and "--n: a paper-protocol scene setting" in err
 
 
 def test_worlds_that_restart_give_the_same_anatomy_as_all_at_once():

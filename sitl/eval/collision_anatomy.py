@@ -159,6 +159,11 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.episodes < 1 or args.n < 2:
         parser.error("--episodes must be at least 1 and --n at least 2")
+    given = sys.argv[1:] if argv is None else argv
+    paper_scene = [flag for flag in ("--scenario", "--density", "--radius", "--n")
+                   if any(a == flag or a.startswith(flag + "=") for a in given)]
+    if args.protocol == "flown" and paper_scene:  # the cell fixes the scene: a flag that would be ignored is refused
+        parser.error(f"{', '.join(paper_scene)}: a paper-protocol scene setting; with --protocol flown choose a --cell")
     if args.protocol == "flown":
         settings = next(c.settings for c in flown_cells(args.episodes, args.seed, jsbsim=False) if c.name == args.cell)
     else:

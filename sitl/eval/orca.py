@@ -13,7 +13,7 @@ the policy's command space (:func:`velocity_to_action`) and the gap is absorbed 
 radius margin above the collision radius R, as a real deployment of ORCA on multicopters
 would do.
 
-``orca-fov`` (:func:`orca_fov_actor`) is the same ORCA limited to what the UAV's own camera
+``orca-fov`` (:func:`orca_actor` with ``camera_limited=True``) is the same ORCA limited to what the UAV's own camera
 covers: each UAV avoids only the UAVs whose centres are inside its camera frustum (field of
 view and range, :mod:`sitl.eval.visibility`) at that step, and the others no longer
 reciprocate reliably since they may not see it. It still knows those UAVs' exact positions

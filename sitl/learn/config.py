@@ -240,14 +240,14 @@ PRESETS: dict[str, dict] = {
 # flown-fast flies the flown task: its training and agent values start from flown's.
 PRESETS["flown-fast"]["train"] = {**PRESETS["flown"]["train"], **PRESETS["flown-fast"]["train"]}
 PRESETS["flown-fast"]["agent"] = {**PRESETS["flown"]["agent"], **PRESETS["flown-fast"]["agent"]}
+# Its stages are flown's with sparser validation; the last one's final choice also flies obstacles.
 PRESETS["flown-fast"]["stages"] = tuple(
-    dataclasses.replace(stage, train={**stage.train, **validation})
-    for stage, validation in zip(PRESETS["flown"]["stages"], ({"eval_every_updates": 2_000}, {"eval_every_updates": 2_000},
-                                                              {"eval_every_updates": 1_500, "eval_episodes": 50})))
-PRESETS["flown-fast"]["stages"] = PRESETS["flown-fast"]["stages"][:-1] + (dataclasses.replace(
-    PRESETS["flown-fast"]["stages"][-1], rescore_scenes=(("random-medium", "random", 8, "medium"),
-                                                         ("circle-n8", "circle", 8, "medium"),
-                                                         ("obstacles", "obstacles", 8, "medium"))),)
+    dataclasses.replace(stage, train={**stage.train, **validation}, **final_choice)
+    for stage, validation, final_choice in zip(
+        PRESETS["flown"]["stages"],
+        ({"eval_every_updates": 2_000}, {"eval_every_updates": 2_000}, {"eval_every_updates": 1_500, "eval_episodes": 50}),
+        ({}, {}, {"rescore_scenes": (("random-medium", "random", 8, "medium"), ("circle-n8", "circle", 8, "medium"),
+                                     ("obstacles", "obstacles", 8, "medium"))})))
 
 
 def resolve_configs(train_values: dict, agent_values: dict) -> tuple[TrainConfig, AgentConfig]:
