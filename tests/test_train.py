@@ -312,3 +312,53 @@ def test_help_shows_the_defaults_a_run_uses(preset, capsys):
             checked += 1
     assert checked == len(values)
     assert f"(default: {agent_cfg.init_temperature})" in text and f"(default: {agent_cfg.n_step})" in text
+
+
+def test_teacher_term_pulls_the_actor_towards_the_teachers_actions_only_where_they_hold():
+    """Teacher-guided SAC+AE: with the behaviour-cloning weight on, the actor's mean action moves
+    to the teacher's on the rows the teacher labelled; with it off, the paper's update is unchanged."""
+    cam = CameraSpec(width=16, height=16)
+    rng = np.random.default_rng(0)
+    buf = FrameReplayBuffer(64, 4, 3, 16, 16, 6, 3)
+    buf.start_episodes(np.arange(4), rng.uniform(0, 20, (4, 16, 16)))
+    target = np.array([0.6, -0.4, 0.3], dtype=np.float32)
+    for step in range(16):
+        valid = np.array([True, True, True, step % 2 == 0])  # some rows carry no label
+        buf.add(np.arange(4), rng.normal(size=(4, 6)), rng.uniform(-1, 1, (4, 3)), rng.normal(size=4),
+                rng.uniform(0, 20, (4, 16, 16)), rng.normal(size=(4, 6)), np.zeros(4, bool),
+                np.tile(target, (4, 1)), valid)
+    assert buf.teacher_valid[:buf.size].mean() == pytest.approx(14 / 16)
+    batch = buf.sample(64, torch.device("cpu"))
+
+    def distance_after(weight: float) -> float:
+        torch.manual_seed(0)
+        agent = SacAeAgent(AgentConfig(hidden_dim=32, actor_update_freq=1), cam, DEFAULT_ACTION_SPEC)
+        pixels, state = agent._inputs(batch["depth"], batch["state"])
+        for _ in range(60):
+            info = agent.update_actor_and_alpha(pixels, state, batch["teacher_action"], batch["teacher_valid"], weight)
+        assert ("losses/teacher_bc" in info) == (weight > 0)
+        with torch.no_grad():
+            mean = agent.actor.deterministic(pixels, state)
+        return float((mean - torch.from_numpy(target)).pow(2).sum(-1).mean())
+
+    assert distance_after(5.0) < 0.2 * distance_after(0.0)
+
+
+def test_trainer_labels_with_privileged_orca_outside_obstacle_worlds_and_the_weight_decays(tmp_path):
+    from sitl.learn.config import PRESETS, resolve_configs
+    from sitl.learn.trainer import make_trainer
+
+    cfg, agent_cfg = resolve_configs(
+        {**PRESETS["flown"]["train"], "preset": "flown", "scenario": "mixed", "circle_fraction": 0.0,
+         "obstacle_fraction": 0.5, "num_worlds": 4, "total_updates": 6, "init_steps": 100, "batch_size": 16,
+         "eval_every_updates": 0, "final_eval_episodes": 0, "teacher_bc_weight": 2.0, "teacher_bc_updates": 12},
+        {"hidden_dim": 32})
+    trainer = make_trainer(cfg, agent_cfg, tmp_path)
+    assert trainer.teacher_weight() == 2.0
+    trainer.run()
+    assert trainer.teacher_weight() == pytest.approx(1.0)  # 6 of 12 updates done
+    buf, env = trainer.buffer, trainer.env
+    valid = buf.teacher_valid[:buf.size, 0]
+    assert 0 < valid.mean() < 1  # obstacle worlds were left out, the others labelled
+    labels = buf.teacher_action[:buf.size][valid > 0]
+    assert np.abs(labels).max() <= 1.0 and labels[:, 0].max() > 0  # unit actions; ORCA flies forward

@@ -202,18 +202,36 @@ class SacAeAgent(nn.Module):
         self.critic_optimizer.step()
         return {"losses/critic": loss.item(), "values/q": q1.mean().item()}
 
-    def update_actor_and_alpha(self, pixels, state) -> dict:
-        """Eq. 7 with the convolutions detached; then the temperature towards the target entropy."""
+    def update_actor_and_alpha(self, pixels, state, teacher_action=None, teacher_valid=None,
+                               bc_weight: float = 0.0) -> dict:
+        """Eq. 7 with the convolutions detached; then the temperature towards the target entropy.
+
+        ``bc_weight`` > 0 adds a behaviour-cloning term (teacher-guided SAC+AE, not in the paper):
+        the squared distance of the actor's mean action ``tanh(mu)`` from the teacher's unit
+        action where ``teacher_valid``, scaled by ``bc_weight`` times the batch's mean |Q| (at least 1)
+        so that its pull keeps its proportion to eq. 7's as the values grow (as in TD3+BC, Fujimoto &
+        Gu 2021) and still pulls while the critic knows nothing yet.
+        """
         if self.config.method == "vae":
-            action, log_prob, log_std = self.actor.sample(pixels, state)
+            latent = self.actor.encoder(pixels)
+            action, log_prob, log_std = self.actor.sample_from_latent(latent, state)
             q1, q2 = self.critic(pixels, state, action, detach_encoder=True)
         else:
             # The actor's convolutions are the critic's: compute them once, without gradient.
             with torch.no_grad():
                 features = self.critic.encoder.conv_features(pixels)
-            action, log_prob, log_std = self.actor.sample_from_latent(self.actor.encoder.head(features), state)
+            latent = self.actor.encoder.head(features)
+            action, log_prob, log_std = self.actor.sample_from_latent(latent, state)
             q1, q2 = self.critic.q_from_latent(self.critic.encoder.head(features).detach(), state, action)
-        actor_loss = (self.alpha.detach() * log_prob - torch.min(q1, q2)).mean()
+        q = torch.min(q1, q2)
+        actor_loss = (self.alpha.detach() * log_prob - q).mean()
+        info = {}
+        if bc_weight > 0.0 and teacher_action is not None and teacher_valid.sum() > 0:
+            mean_action = torch.tanh(self.actor.distribution_from_latent(latent, state)[0])
+            per_sample = (mean_action - teacher_action).pow(2).sum(-1, keepdim=True)
+            bc_loss = (per_sample * teacher_valid).sum() / teacher_valid.sum()
+            actor_loss = actor_loss + bc_weight * q.abs().mean().detach().clamp(min=1.0) * bc_loss
+            info = {"losses/teacher_bc": bc_loss.item(), "values/teacher_bc_weight": bc_weight}
         self.actor_optimizer.zero_grad(set_to_none=True)
         actor_loss.backward()
         self.actor_optimizer.step()
@@ -221,8 +239,8 @@ class SacAeAgent(nn.Module):
         self.alpha_optimizer.zero_grad(set_to_none=True)
         alpha_loss.backward()
         self.alpha_optimizer.step()
-        return {"losses/actor": actor_loss.item(), "losses/alpha": alpha_loss.item(),
-                "values/alpha": self.alpha.item(), "values/entropy": -log_prob.mean().item()}
+        return info | {"losses/actor": actor_loss.item(), "losses/alpha": alpha_loss.item(),
+                       "values/alpha": self.alpha.item(), "values/entropy": -log_prob.mean().item()}
 
     def update_decoder(self, pixels) -> dict:
         """Eq. 8 (RAE): reconstruction + lambda_z |z|^2; lambda_phi |phi|^2 is the decoder's weight decay."""
@@ -249,8 +267,9 @@ class SacAeAgent(nn.Module):
                 for p, tp in zip(self.critic.encoder.parameters(), self.critic_target.encoder.parameters()):
                     tp.lerp_(p, cfg.encoder_tau)
 
-    def update(self, batch: dict[str, torch.Tensor]) -> dict:
-        """One gradient step of every part due at this update count."""
+    def update(self, batch: dict[str, torch.Tensor], bc_weight: float = 0.0) -> dict:
+        """One gradient step of every part due at this update count (``bc_weight``: see
+        :meth:`update_actor_and_alpha`; the batch then carries ``teacher_action``/``teacher_valid``)."""
         cfg = self.config
         pixels, state = self._inputs(batch["depth"], batch["state"])
         next_pixels, next_state = self._inputs(batch["next_depth"], batch["next_state"])
@@ -259,7 +278,8 @@ class SacAeAgent(nn.Module):
         info = self.update_critic(pixels, state, batch["action"], batch["reward"], next_pixels, next_state,
                                   batch["discount"])
         if self.updates % cfg.actor_update_freq == 0:
-            info |= self.update_actor_and_alpha(pixels, state)
+            info |= self.update_actor_and_alpha(pixels, state, batch.get("teacher_action"), batch.get("teacher_valid"),
+                                                bc_weight)
         if self.updates % cfg.critic_target_update_freq == 0:
             self.soft_update_targets()
         if self.decoder is not None and self.updates % cfg.decoder_update_freq == 0:

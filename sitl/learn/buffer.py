@@ -8,7 +8,7 @@ resolution at 20 m) and a transition keeps the indices of its ``k + 1`` frames.
 Memory: ``frame_capacity * H * W * 2`` bytes of frames, with ``frame_capacity = 2 *
 capacity + 8 * agents`` (every transition adds one frame, every episode start adds one,
 and an episode has at least one transition, so a frame is never overwritten while a
-transition that uses it is alive), plus ~60 bytes of vectors per transition. For the
+transition that uses it is alive), plus ~76 bytes of vectors per transition. For the
 default 20,000 transitions of 32x32 images and 128 agents that is 85 MB — a plain
 obs/next_obs buffer of float32 stacks would take 492 MB.
 """
@@ -34,6 +34,9 @@ class FrameReplayBuffer:
         self.action = np.zeros((capacity, action_dim), dtype=np.float32)
         self.reward = np.zeros((capacity, 1), dtype=np.float32)
         self.not_done = np.zeros((capacity, 1), dtype=np.float32)
+        # A privileged teacher's action in [-1, 1] where one was given (teacher-guided training), else invalid.
+        self.teacher_action = np.zeros((capacity, action_dim), dtype=np.float32)
+        self.teacher_valid = np.zeros((capacity, 1), dtype=np.float32)
         # Links to the same agent's next transition, for n-step returns. A link holds the
         # stamp (insertion count) of its target so that an overwritten row is not followed.
         self.stamp = np.full(capacity, -1, dtype=np.int64)
@@ -50,7 +53,8 @@ class FrameReplayBuffer:
 
     @property
     def nbytes(self) -> int:
-        arrays = (self.frame_store, self.frame_index, self.state, self.next_state, self.action, self.reward, self.not_done)
+        arrays = (self.frame_store, self.frame_index, self.state, self.next_state, self.action, self.reward, self.not_done,
+                  self.teacher_action, self.teacher_valid)
         return sum(a.nbytes for a in arrays)
 
     def _store_frames(self, frames: np.ndarray) -> np.ndarray:
@@ -70,11 +74,14 @@ class FrameReplayBuffer:
         self.agent_last_row[agents] = -1
 
     def add(self, agents: np.ndarray, state: np.ndarray, action: np.ndarray, reward: np.ndarray,
-            next_frames: np.ndarray, next_state: np.ndarray, terminated: np.ndarray) -> None:
+            next_frames: np.ndarray, next_state: np.ndarray, terminated: np.ndarray,
+            teacher_action: np.ndarray | None = None, teacher_valid: np.ndarray | None = None) -> None:
         """Store one step of the agents in ``agents`` (all arrays have one row per agent listed).
 
         ``terminated`` means the episode truly ended (arrival or collision): no bootstrap.
         A time-out is not terminal (its next state is still worth something).
+        ``teacher_action``: a teacher's action in [-1, 1] for the same observation, where
+        ``teacher_valid`` (default: everywhere it is given; nowhere without it).
         """
         count = len(agents)
         if count == 0:
@@ -88,6 +95,11 @@ class FrameReplayBuffer:
         self.reward[rows, 0] = reward
         self.next_state[rows] = next_state
         self.not_done[rows, 0] = 1.0 - terminated.astype(np.float32)
+        if teacher_action is None:
+            self.teacher_valid[rows, 0] = 0.0
+        else:
+            self.teacher_action[rows] = teacher_action
+            self.teacher_valid[rows, 0] = 1.0 if teacher_valid is None else teacher_valid.astype(np.float32)
         self.agent_stack[agents] = np.concatenate([self.agent_stack[agents, 1:], new_frames[:, None]], axis=1)
         stamps = self._inserted + np.arange(count)
         self.stamp[rows] = stamps
@@ -136,11 +148,13 @@ class FrameReplayBuffer:
             "next_state": to(self.next_state[last]),
             "not_done": to(self.not_done[last]),
             "discount": to(discount[:, None]),
+            "teacher_action": to(self.teacher_action[rows]),
+            "teacher_valid": to(self.teacher_valid[rows]),
         }
 
     #: Arrays with one row per transition; rows 0 .. size - 1 are the filled ones (rows fill in order).
     _ROW_ARRAYS = ("frame_index", "state", "next_state", "action", "reward", "not_done", "stamp", "successor",
-                   "successor_stamp")
+                   "successor_stamp", "teacher_action", "teacher_valid")
 
     def state_dict(self) -> dict:
         """Everything needed to resume, with only the *filled* part of the preallocated arrays.

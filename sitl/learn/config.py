@@ -95,6 +95,12 @@ class TrainConfig:
     vae_policy: str = _param("", "vae method: policy.pt that flies while depth images are collected")
     vae_images: int = _param(20_000, "vae method: stacked depth images to collect")
     vae_epochs: int = _param(20, "vae method: training epochs of the VAE")
+    teacher_bc_weight: float = _param(0.0, "weight of a behaviour-cloning term in the actor loss that pulls the actor's "
+                                      "mean action towards privileged ORCA's (a teacher that knows every UAV; "
+                                      "obstacle worlds excluded), in units of the critic's mean |Q| (at least 1); 0: the paper's "
+                                      "SAC+AE (docs/training.md 'Teacher-guided SAC+AE')")
+    teacher_bc_updates: int = _param(0, "the teacher's weight falls linearly to 0 over this many updates, counted "
+                                        "from the first stage of a recipe (0: it stays constant)")
     init_from: str = _param("", "start from the networks of another run (a curriculum stage): its directory or "
                                 "checkpoint.pt (optimiser states carried over) or a validated snapshot "
                                 "snapshots/agent_<updates>.pt; its updates and wall time count in this run's provenance")
@@ -132,6 +138,8 @@ class TrainConfig:
             raise ValueError(f"yaw_jitter_deg must be in [0, 180], got {self.yaw_jitter_deg}")
         if not 0.0 <= self.updates_per_env_step <= 10_000.0:
             raise ValueError(f"updates_per_env_step must be in [0, 10000], got {self.updates_per_env_step}")
+        if not 0.0 <= self.teacher_bc_weight <= 100.0:
+            raise ValueError(f"teacher_bc_weight must be in [0, 100], got {self.teacher_bc_weight}")
         if not 0.0 < self.checkpoint_every_s < math.inf:
             raise ValueError(f"checkpoint_every_s must be a finite number > 0, got {self.checkpoint_every_s}")
         try:
@@ -155,6 +163,7 @@ TRAIN_INT_RANGES = (
     ("total_updates", 0, 10**9), ("updates_per_episode", 0, 1_000_000), ("init_steps", 0, 10**9),
     ("eval_every_updates", 0, 10**9), ("eval_episodes", 1, 1_000_000), ("final_eval_episodes", 0, 1_000_000),
     ("seed", 0, 2**32 - 1), ("threads", 1, MAX_THREADS), ("vae_images", 1, 10_000_000), ("vae_epochs", 1, 100_000),
+    ("teacher_bc_updates", 0, 10**9),
 )
 
 #: Each preset sets training and agent fields; explicit flags override it. The dataclass

@@ -230,6 +230,12 @@ class Trainer:
         from torch.utils.tensorboard import SummaryWriter
 
         self.writer = SummaryWriter(str(run_dir / "tb"))
+        #: teacher-guided SAC+AE (``teacher_bc_weight`` > 0): privileged ORCA labels the actions
+        self.teacher = None
+        if cfg.teacher_bc_weight > 0:
+            from sitl.eval.orca import OrcaController
+
+            self.teacher = OrcaController.for_env(env)
         #: counters of the run this one started from (``init_from``), for the provenance
         self.initial_stage: dict = {}
         if resume:
@@ -338,6 +344,24 @@ class Trainer:
         return f"{self.run_dir.name} | {stages[-1]['name']}"
 
     # -------------------------------------------------------------- helpers
+    def teacher_weight(self) -> float:
+        """The behaviour-cloning weight at this update: ``teacher_bc_weight`` falling linearly to 0 over
+        ``teacher_bc_updates`` updates counted from the recipe's first stage (earlier stages included)."""
+        cfg = self.cfg
+        if cfg.teacher_bc_weight <= 0 or not cfg.teacher_bc_updates:
+            return cfg.teacher_bc_weight
+        done = self.counters["updates"] + self.initial_stage.get("updates", 0)
+        return cfg.teacher_bc_weight * max(0.0, 1.0 - done / cfg.teacher_bc_updates)
+
+    def teacher_labels(self, rows: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The teacher's unit actions for the acting ``rows`` and where they hold (not in worlds with
+        obstacles, which ORCA does not see); (None, None) once the teacher's weight is 0."""
+        if self.teacher is None or self.teacher_weight() <= 0:
+            return None, None
+        env = self.env
+        action = self.agent.to_unit_action(self.teacher.act_env(env)[rows])
+        return action, ~np.repeat(env.world_has_obstacles, env.uavs_per_world)[rows]
+
     def finished(self) -> bool:
         c, k = self.cfg, self.counters
         return (c.total_updates > 0 and k["updates"] >= c.total_updates) or \
@@ -432,9 +456,10 @@ class Trainer:
             else:
                 action = agent.act(obs.depth, obs.state, explore=True)
             state = obs.state
+            teacher_action, teacher_valid = self.teacher_labels(rows)  # for the observation acted on
             obs, reward, terminated, truncated, info = env.step(action)
             buffer.add(rows, state[rows], agent.to_unit_action(action[rows]), reward[rows], obs.depth[rows, -1],
-                       obs.state[rows], terminated[rows])
+                       obs.state[rows], terminated[rows], teacher_action, teacher_valid)
             returns += reward
             k["env_steps"] += 1
             k["transitions"] += len(rows)
@@ -469,7 +494,7 @@ class Trainer:
                     todo = min(todo, cfg.total_updates - k["updates"])
                 for _ in range(todo):
                     latest_losses |= agent.update(buffer.sample(cfg.batch_size, agent.device, agent.config.n_step,
-                                                                agent.config.discount))
+                                                                agent.config.discount), self.teacher_weight())
                     k["updates"] += 1
                     window_updates += 1
                     if unit == "update":
@@ -535,6 +560,9 @@ class Trainer:
             "camera": cfg.camera, "camera_noise": cfg.camera_noise,
             "mount_pitch_jitter_deg": cfg.mount_pitch_jitter_deg, "avoid_counts_ground": cfg.avoid_counts_ground,
         }
+        if cfg.teacher_bc_weight > 0:  # teacher-guided SAC+AE: not the paper's method alone
+            provenance["teacher"] = {"kind": "orca (privileged)", "bc_weight": cfg.teacher_bc_weight,
+                                     "bc_updates": cfg.teacher_bc_updates}
         if selected is not None:
             provenance["selected_snapshot"] = selected  # trained for wall_time_s; these networks are from here
         if cfg.init_from:

@@ -108,6 +108,12 @@ class SwarmEnv:
         """[B] bool: worlds in which no UAV acts any more."""
         return ~self.acting.reshape(self.num_worlds, self.uavs_per_world).any(axis=1)
 
+    @property
+    def world_has_obstacles(self) -> np.ndarray:
+        """[B] bool: worlds with at least one box or cylinder in place (rows that are not padding)."""
+        placed_boxes = (self.boxes != DISABLED_BOX).any(axis=2).any(axis=1)
+        return placed_boxes | (self.cylinders != DISABLED_CYLINDER).any(axis=2).any(axis=1)
+
     def observation(self) -> Observation:
         """The current observation of every UAV (a fresh state array; depth is a view)."""
         d = self.dynamics
