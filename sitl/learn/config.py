@@ -105,6 +105,10 @@ class TrainConfig:
                                 "checkpoint.pt (optimiser states carried over) or a validated snapshot "
                                 "snapshots/agent_<updates>.pt; its updates and wall time count in this run's provenance")
 
+    def time_limit(self, evaluation_steps: int | None = None) -> int:
+        """An evaluation's time limit in steps: ``evaluation_steps`` when given, else the training episodes'."""
+        return evaluation_steps or self.max_episode_steps
+
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
             raise ValueError(f"unknown preset {self.preset!r}; choose one of {', '.join(PRESETS)}")

@@ -171,7 +171,7 @@ class Recipe:
         cfg, agent_cfg = TrainConfig(**saved["train"]), AgentConfig(**saved["agent"])
         rows = _validation_rows(sdir)
         scenes = self.stages[index].rescore_scenes
-        steps = self.evaluation_steps or cfg.max_episode_steps
+        steps = cfg.time_limit(self.evaluation_steps)
         for row in rows:  # a rescoring under other settings (an earlier version of the recipe) is redone
             done = row.get("rescored")
             if done and (done.get("episodes"), done.get("max_episode_steps"), sorted(done["scenes"])) != \
@@ -200,7 +200,7 @@ class Recipe:
         recipe = {"preset": self.cfg.preset, "scale": self.scale, "stages": self.state["stages"],
                   "rescore": {"top": self.rescore_top, "episodes": self.rescore_episodes,
                               "scenes": [s[0] for s in self.stages[index].rescore_scenes],
-                              "max_episode_steps": self.evaluation_steps or cfg.max_episode_steps},
+                              "max_episode_steps": cfg.time_limit(self.evaluation_steps)},
                   "wall_time_s_before_final_evaluation": round(self.state["wall_s"], 1)}
         path = trainer.finish(recipe=recipe, evaluation_steps=self.evaluation_steps)
         for name in ("policy.pt", "final_eval.json"):  # the recipe draws its own learning curve

@@ -74,7 +74,7 @@ def rescore_snapshot(cfg: TrainConfig, make_actor: ActorFactory, scenes: list[Sc
     ``max_episode_steps``: the time limit to fly them with (default: the run's training limit).
     """
     results: dict[str, dict] = {}
-    steps = max_episode_steps or cfg.max_episode_steps
+    steps = cfg.time_limit(max_episode_steps)
     for name, scenario, uavs, density in scenes:
         scene_cfg = replace(cfg, num_uavs=uavs, density=density, max_episode_steps=steps)
         summary = evaluate_scenario(make_actor, scene_cfg, scenario, episodes, VALIDATION_SEED_OFFSET + cfg.seed)

@@ -371,7 +371,7 @@ class Trainer:
                  max_episode_steps: int | None = None) -> dict[str, dict]:
         """Deterministic evaluation on unseen seeds (test seeds by default), one summary per evaluation scenario,
         with the training episodes' time limit unless ``max_episode_steps`` is given."""
-        cfg = replace(self.cfg, max_episode_steps=max_episode_steps or self.cfg.max_episode_steps)
+        cfg = replace(self.cfg, max_episode_steps=self.cfg.time_limit(max_episode_steps))
         return {name: evaluate_scenario(agent_actor(self.agent), cfg, name, episodes, seed_offset + cfg.seed)
                 for name in evaluation_scenarios(cfg)}
 
@@ -543,7 +543,7 @@ class Trainer:
             self.validate(write=self.log)
             self.save_checkpoint()  # its history (and learning curve) now include that validation
         selected = self._restore_best_snapshot() if cfg.select_best else None
-        eval_steps = evaluation_steps or cfg.max_episode_steps
+        eval_steps = cfg.time_limit(evaluation_steps)
         self.log(f"final evaluation: {cfg.final_eval_episodes} episodes of at most {eval_steps} steps, "
                  f"seeds >= {EVAL_SEED_OFFSET}")
         summaries = self.evaluate(cfg.final_eval_episodes, max_episode_steps=eval_steps) if cfg.final_eval_episodes else {}
