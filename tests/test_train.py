@@ -328,7 +328,7 @@ def test_teacher_term_pulls_the_actor_towards_the_teachers_actions_only_where_th
                 rng.uniform(0, 20, (4, 16, 16)), rng.normal(size=(4, 6)), np.zeros(4, bool),
                 np.tile(target, (4, 1)), valid)
     assert buf.teacher_valid[:buf.size].mean() == pytest.approx(14 / 16)
-    batch = buf.sample(64, torch.device("cpu"))
+    batch = buf.sample(64, torch.device("cpu"), with_teacher=True)
 
     def distance_after(weight: float) -> float:
         torch.manual_seed(0)

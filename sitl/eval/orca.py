@@ -57,7 +57,7 @@ def _import_rvo():
         import rvo23d  # noqa: PLC0415 - optional compiled dependency, needed only for --policy orca
     except ImportError as err:  # pragma: no cover - depends on the machine
         raise ImportError(
-            "--policy orca needs the RVO2-3D binding from PyPI: pip install jt-pyrvo23d "
+            "ORCA (--policy orca, a training teacher) needs the RVO2-3D binding from PyPI: pip install jt-pyrvo23d "
             "(wheels for Linux x86_64, CPython 3.10-3.13)"
         ) from err
     return rvo23d

@@ -113,8 +113,11 @@ class FrameReplayBuffer:
         self._next = (self._next + count) % self.capacity
         self.size = min(self.size + count, self.capacity)
 
-    def sample(self, batch_size: int, device: torch.device, n_step: int = 1, gamma: float = 0.99) -> dict[str, torch.Tensor]:
+    def sample(self, batch_size: int, device: torch.device, n_step: int = 1, gamma: float = 0.99,
+               with_teacher: bool = False) -> dict[str, torch.Tensor]:
         """A uniform batch; depth comes back as float32 metres [B, k, H, W].
+
+        ``with_teacher``: the batch also carries ``teacher_action`` and ``teacher_valid``.
 
         With ``n_step > 1`` each transition is extended along its agent's episode by up to
         ``n_step - 1`` further transitions: ``reward`` is the discounted sum and
@@ -139,7 +142,7 @@ class FrameReplayBuffer:
         obs_frames = self.frame_store[self.frame_index[rows, :k]]
         next_frames = self.frame_store[self.frame_index[last, 1:]]
         to = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)).to(device)  # noqa: E731
-        return {
+        batch = {
             "depth": to(obs_frames),
             "next_depth": to(next_frames),
             "state": to(self.state[rows]),
@@ -148,9 +151,10 @@ class FrameReplayBuffer:
             "next_state": to(self.next_state[last]),
             "not_done": to(self.not_done[last]),
             "discount": to(discount[:, None]),
-            "teacher_action": to(self.teacher_action[rows]),
-            "teacher_valid": to(self.teacher_valid[rows]),
         }
+        if with_teacher:
+            batch |= {"teacher_action": to(self.teacher_action[rows]), "teacher_valid": to(self.teacher_valid[rows])}
+        return batch
 
     #: Arrays with one row per transition; rows 0 .. size - 1 are the filled ones (rows fill in order).
     _ROW_ARRAYS = ("frame_index", "state", "next_state", "action", "reward", "not_done", "stamp", "successor",

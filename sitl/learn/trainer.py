@@ -235,7 +235,10 @@ class Trainer:
         if cfg.teacher_bc_weight > 0:
             from sitl.eval.orca import OrcaController
 
-            self.teacher = OrcaController.for_env(env)
+            try:
+                self.teacher = OrcaController.for_env(env)
+            except ImportError as err:  # the binding has wheels for Linux x86_64 only
+                raise ValueError(f"--teacher-bc-weight: {err}") from None
         #: counters of the run this one started from (``init_from``), for the provenance
         self.initial_stage: dict = {}
         if resume:
@@ -492,9 +495,11 @@ class Trainer:
                 todo = int(k["update_credit"])
                 if cfg.total_updates > 0:
                     todo = min(todo, cfg.total_updates - k["updates"])
+                bc_weight = self.teacher_weight()  # changes by a few parts in 10^4 over one step's updates
                 for _ in range(todo):
                     latest_losses |= agent.update(buffer.sample(cfg.batch_size, agent.device, agent.config.n_step,
-                                                                agent.config.discount), self.teacher_weight())
+                                                                agent.config.discount, with_teacher=bc_weight > 0),
+                                                  bc_weight)
                     k["updates"] += 1
                     window_updates += 1
                     if unit == "update":
