@@ -31,9 +31,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
-import socket
-import subprocess
 import sys
 import tempfile
 import time
@@ -43,6 +40,8 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+
+from tests.companion_helpers import Processes, free_udp_ports  # noqa: E402
 
 TARGETS = {"inference_ms_p99": 2.0, "frame_to_setpoint_ms_p99": 15.0, "period_jitter_ms_p99": 2.0}
 #: --smoke: measured flight, warm-up (s) and isolated inference calls.
@@ -80,55 +79,37 @@ def isolated_inference_ms(policy_paths: dict[str, Path], calls: int = 2000, bloc
     return {name: percentiles_ms(values) for name, values in samples.items()}
 
 
-def free_ports(count: int) -> list[int]:
-    """``count`` UDP ports free on 127.0.0.1 right now."""
-    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(count)]
-    for s in socks:
-        s.bind(("127.0.0.1", 0))
-    ports = [s.getsockname()[1] for s in socks]
-    for s in socks:
-        s.close()
-    return ports
-
-
 def fly(policy_path: Path, workdir: Path, seconds: float, warmup: float, camera_hz: float,
         realtime: bool = False) -> list[dict]:
     """Run vehicle + companion for warmup + seconds; return the companion's log records."""
-    env = dict(os.environ, PYTHONPATH=str(REPO), OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="1")
-    mav_port, depth_port = free_ports(2)
+    mav_port, depth_port = free_udp_ports(2)
     log = workdir / "companion.jsonl"
     for stale in (log, workdir / "vehicle.jsonl"):  # the companion appends: start from empty logs
         stale.unlink(missing_ok=True)
-    prefix = ["chrt", "-f", "20"] if realtime else []
-    vehicle = subprocess.Popen([*prefix, sys.executable, "-m", "sitl.vehicle", "--airborne", "--start", "0,0,-5",
-                                "--base-port", str(mav_port), "--depth-port", str(depth_port), "--gcs-port", "0",
-                                "--camera-hz", str(camera_hz), "--log", str(workdir / "vehicle.jsonl"),
-                                "--duration", str(seconds + warmup + 60)],
-                               cwd=REPO, env=env, start_new_session=True, stderr=subprocess.DEVNULL)
-    companion = subprocess.Popen([*prefix, sys.executable, "-m", "companion.cli", "--connect", f"udpin:127.0.0.1:{mav_port}",
-                                  "--model", str(policy_path), "--camera", f"sitl:{depth_port}", "--goal", "2000,0,-5",
-                                  "--arm", "--takeoff", "5", "--log", str(log)],
-                                 cwd=REPO, env=env, start_new_session=True, stderr=subprocess.PIPE, text=True)
+    prefix = ("chrt", "-f", "20") if realtime else ()
+    procs = Processes(workdir)
+    procs.start("vehicle", ["-m", "sitl.vehicle", "--airborne", "--start", "0,0,-5",
+                            "--base-port", str(mav_port), "--depth-port", str(depth_port), "--gcs-port", "0",
+                            "--camera-hz", str(camera_hz), "--log", str(workdir / "vehicle.jsonl"),
+                            "--duration", str(seconds + warmup + 60)], prefix=prefix)
+    companion = procs.start("companion", ["-m", "companion.cli", "--connect", f"udpin:127.0.0.1:{mav_port}",
+                                          "--model", str(policy_path), "--camera", f"sitl:{depth_port}",
+                                          "--goal", "2000,0,-5", "--arm", "--takeoff", "5", "--log", str(log)],
+                            prefix=prefix)
     try:
         deadline = time.monotonic() + 60
         flying_since = None
         while time.monotonic() < deadline and flying_since is None:
             time.sleep(0.5)
             if companion.poll() is not None:
-                raise RuntimeError(f"companion exited early: {companion.stderr.read()[-2000:]}")
+                raise RuntimeError(f"companion exited early: {procs.stderr('companion')[-2000:]}")
             if log.exists() and '"phase":"flying_to_goal"' in log.read_text():
                 flying_since = time.monotonic()
         if flying_since is None:
             raise RuntimeError("the companion never engaged")
         time.sleep(warmup + seconds)
     finally:
-        for proc in (companion, vehicle):  # the companion first: it stops and hands over before exiting
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGTERM)
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
+        procs.stop_all(grace_s=20.0, newest_first=True)  # the companion first: it stops and hands over before exiting
     return [json.loads(line) for line in log.read_text().splitlines() if line.strip()]
 
 

@@ -28,10 +28,8 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import random
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -43,31 +41,10 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from tests.companion_helpers import Processes, free_tcp_port, free_udp_ports, read_jsonl  # noqa: E402
+
 TARGETS = {"stop_distance_m": 2.0, "settled_error_m": 0.3}
 FAST_M_S = 1.6  # SIGTERM once the vehicle flies at least this fast (the issue's ~2 m/s; the policy cruises at 1.8-2)
-
-
-def _free_port(kind: int, low: int, high: int) -> int:
-    rng = random.Random(os.getpid() ^ time.monotonic_ns())
-    while True:
-        port = rng.randrange(low, high)
-        with socket.socket(socket.AF_INET, kind) as s:
-            try:
-                s.bind(("127.0.0.1", port))
-            except OSError:
-                continue
-        return port
-
-
-def _jsonl(path: Path) -> list[dict]:
-    out = []
-    if path.exists():
-        for line in path.read_text(errors="replace").splitlines():
-            try:
-                out.append(json.loads(line))
-            except json.JSONDecodeError:
-                pass
-    return out
 
 
 class _Flight:
@@ -76,30 +53,25 @@ class _Flight:
     def __init__(self, folder: Path, args, goal: str) -> None:
         self.folder = folder
         self.trace, self.clog = folder / "trace.jsonl", folder / "companion.jsonl"
-        env = dict(os.environ, PYTHONPATH=str(REPO), OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="1")
-        depth = _free_port(socket.SOCK_DGRAM, 20000, 32000)
-        port = (_free_port(socket.SOCK_STREAM, 41000, 45000) if args.transport == "tcp"
-                else _free_port(socket.SOCK_DGRAM, 20000, 32000))
+        port = free_tcp_port() if args.transport == "tcp" else free_udp_ports(1)[0]
+        depth = free_udp_ports(1)[0]
         connect = f"tcp:127.0.0.1:{port}" if args.transport == "tcp" else f"udpin:127.0.0.1:{port}"
-        out = open(folder / "vehicle.err", "wb")  # noqa: SIM115
-        self.vehicle = subprocess.Popen(
-            [sys.executable, "-m", "sitl.vehicle", "--autopilot", args.autopilot, "--transport", args.transport,
-             "--base-port", str(port), "--depth-port", str(depth), "--gcs-port", "0", "--trace", str(self.trace),
-             "--airborne", "--start", "0,0,-3",  # hovering at 3 m: --arm engages without a takeoff
-             "--log", str(folder / "vehicle.jsonl"), "--duration", "300"],
-            cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=out, start_new_session=True)
-        err = open(folder / "companion.err", "wb")  # noqa: SIM115
-        self.companion = subprocess.Popen(
-            [sys.executable, "-m", "companion.cli", "--connect", connect, "--model", str(args.policy), "--camera",
-             f"sitl:{depth}", "--goal", goal, "--arm", "--takeoff", "3", "--timeout", "200", "--heartbeat-timeout", "60",
-             "--log", str(self.clog)],
-            cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=err, start_new_session=True)
+        self.procs = Processes(folder)  # vehicle.err / companion.err stay in the folder
+        self.vehicle = self.procs.start("vehicle", [
+            "-m", "sitl.vehicle", "--autopilot", args.autopilot, "--transport", args.transport,
+            "--base-port", str(port), "--depth-port", str(depth), "--gcs-port", "0", "--trace", str(self.trace),
+            "--airborne", "--start", "0,0,-3",  # hovering at 3 m: --arm engages without a takeoff
+            "--log", str(folder / "vehicle.jsonl"), "--duration", "300"])
+        self.companion = self.procs.start("companion", [
+            "-m", "companion.cli", "--connect", connect, "--model", str(args.policy), "--camera",
+            f"sitl:{depth}", "--goal", goal, "--arm", "--takeoff", "3", "--timeout", "200", "--heartbeat-timeout", "60",
+            "--log", str(self.clog)])
 
     def events(self, name: str) -> list[dict]:
-        return [r for r in _jsonl(self.clog) if r.get("kind") == "event" and r.get("event") == name]
+        return [r for r in read_jsonl(self.clog) if r.get("kind") == "event" and r.get("event") == name]
 
     def positions(self) -> list[tuple[float, np.ndarray]]:
-        return [(r["t"], np.asarray(r["pos_ned"][0])) for r in _jsonl(self.trace)]
+        return [(r["t"], np.asarray(r["pos_ned"][0])) for r in read_jsonl(self.trace)]
 
     def wait(self, predicate, timeout_s: float, what: str):
         deadline = time.monotonic() + timeout_s
@@ -120,14 +92,7 @@ class _Flight:
         return t
 
     def close(self) -> None:
-        for proc in (self.companion, self.vehicle):
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGTERM)
-                try:
-                    proc.wait(timeout=10)
-                except subprocess.TimeoutExpired:
-                    os.killpg(proc.pid, signal.SIGKILL)
-                    proc.wait()
+        self.procs.stop_all(grace_s=10.0, newest_first=True)
 
 
 def _speed(points: list[tuple[float, np.ndarray]], span: int = 1) -> float | None:

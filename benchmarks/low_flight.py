@@ -23,10 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import signal
-import socket
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -36,7 +32,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from benchmarks.companion_stop import _free_port, _jsonl  # noqa: E402  (one copy of the port and log helpers)
+from tests.companion_helpers import Processes, free_udp_ports, read_jsonl  # noqa: E402  (the tests' process helpers)
 from companion.policy import load_policy  # noqa: E402
 
 TARGET_FLIGHT_S = 20.0  # issue 15: the 2 m takeoff flight of 15 m arrives within 20 s
@@ -53,37 +49,27 @@ def fly(policy: Path, camera: str, altitude_m: float, distance_m: float, folder:
         timeout_s: float = FLIGHT_TIMEOUT_S) -> dict:
     """One flight from the ground; the measured figures (see the module doc)."""
     folder.mkdir(parents=True, exist_ok=True)
-    env = dict(os.environ, PYTHONPATH=str(REPO), OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="1")
-    mav, depth = (_free_port(socket.SOCK_DGRAM, 20000, 32000) for _ in range(2))
+    mav, depth = free_udp_ports(2)
     trace, clog = folder / "trace.jsonl", folder / "companion.jsonl"
     goal = np.array([distance_m, 0.0, -altitude_m])
-    procs = [subprocess.Popen(
-        [sys.executable, "-m", "sitl.vehicle", "--base-port", str(mav), "--depth-port", str(depth), "--gcs-port", "0",
-         "--camera", camera, "--trace", str(trace), "--log", str(folder / "vehicle.jsonl"),
-         "--duration", str(timeout_s + 60)],
-        cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=open(folder / "vehicle.err", "wb"),  # noqa: SIM115
-        start_new_session=True)]
-    procs.append(subprocess.Popen(
-        [sys.executable, "-m", "companion.cli", "--connect", f"udpin:127.0.0.1:{mav}", "--model", str(policy),
-         "--camera", f"sitl:{depth}", "--arm", "--takeoff", f"{altitude_m:g}",
-         "--goal", ",".join(f"{v:g}" for v in goal), "--exit-on-arrival", "--timeout", f"{timeout_s:g}",
-         "--heartbeat-timeout", "60", "--log", str(clog)],
-        cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=open(folder / "companion.err", "wb"),  # noqa: SIM115
-        start_new_session=True))
+    procs = Processes(folder)  # vehicle.err / companion.err stay in the folder
+    procs.start("vehicle", [
+        "-m", "sitl.vehicle", "--base-port", str(mav), "--depth-port", str(depth), "--gcs-port", "0",
+        "--camera", camera, "--trace", str(trace), "--log", str(folder / "vehicle.jsonl"),
+        "--duration", str(timeout_s + 60)])
+    companion = procs.start("companion", [
+        "-m", "companion.cli", "--connect", f"udpin:127.0.0.1:{mav}", "--model", str(policy),
+        "--camera", f"sitl:{depth}", "--arm", "--takeoff", f"{altitude_m:g}",
+        "--goal", ",".join(f"{v:g}" for v in goal), "--exit-on-arrival", "--timeout", f"{timeout_s:g}",
+        "--heartbeat-timeout", "60", "--log", str(clog)])
     try:
-        code = procs[1].wait(timeout=timeout_s + 90)
+        code = companion.wait(timeout=timeout_s + 90)
     finally:
-        for proc in reversed(procs):
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGTERM)
-                try:
-                    proc.wait(timeout=15)
-                except subprocess.TimeoutExpired:
-                    os.killpg(proc.pid, signal.SIGKILL)
-    events = [r for r in _jsonl(clog) if r.get("kind") == "event"]
+        procs.stop_all(grace_s=15.0, newest_first=True)
+    events = [r for r in read_jsonl(clog) if r.get("kind") == "event"]
     start = next((e for e in events if e.get("event") == "phase" and e.get("to") == "flying_to_goal"), None)
     arrived = next((e for e in events if e.get("event") == "arrived"), None)
-    points = [(r["t"], np.asarray(r["pos_ned"][0])) for r in _jsonl(trace)]
+    points = [(r["t"], np.asarray(r["pos_ned"][0])) for r in read_jsonl(trace)]
     row = {"altitude_m": altitude_m, "distance_m": distance_m, "companion_exit": code, "arrived": arrived is not None}
     if start is None or not points:
         return row | {"error": f"never flew to the goal (see {folder})"}

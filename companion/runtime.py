@@ -62,14 +62,13 @@ import gc
 import math
 import select
 import signal
-import threading
 import time
-from collections import deque
 from dataclasses import dataclass
 from enum import Enum, IntEnum
 
 import numpy as np
 
+from companion.clock import ControlClock
 from companion.depth_sources import DepthFault, DepthFrame, DepthSource
 from companion.flightlog import FlightLog, RunningStats, resident_memory_mb
 from companion.mavlink_link import AutopilotLink, PendingCommand, mavlink
@@ -80,12 +79,13 @@ from companion.flight_modes import (
     PX4_MODE_BY_NAME,
     AutopilotKind,
 )
+from companion.inference import InferenceWorker
 from companion.observation import DepthFrameStack, build_state
 from companion.obstacle_distance import ObstacleDistancePublisher
 from companion.policy import LoadedPolicy
 from companion.recording import FlightRecorder
 from companion.sdnotify import SystemdNotifier
-from companion.spec import STATE_DIM, goal_problem
+from companion.spec import goal_problem
 
 
 #: Below this much time before an inference's deadline, no call is started (its answer could not
@@ -173,183 +173,6 @@ class CompanionConfig:
     camera_sync: bool = True
     takeoff_timeout_s: float = 60.0
     obstacle_distance: bool = True  # publish OBSTACLE_DISTANCE per depth frame (companion.obstacle_distance)
-
-
-class ControlClock:
-    """Fixed-rate ticks at ``period_s`` with deadline accounting, optionally phase-locked to frames.
-
-    Frames come from a camera clock at period P (a multiple of the control rate locks
-    exactly); their arrival times scatter *late* of that grid (scheduling, transport). The
-    lock estimates the grid's early edge and the spread of the lateness from the last 64
-    arrivals, and steers the ticks to ``early edge + p95 lateness + guard``: late enough that
-    ~95 % of frames are in before the tick, early enough that they wait only milliseconds.
-    The target delay follows the lateness estimate with a ~1 s time constant. The next tick
-    moves later by at most ``acquire_slew_s`` (a tick before its frame costs a frame period
-    of latency) and earlier by at most ``track_slew_s`` near the target (``acquire_slew_s``
-    far from it), so the lock itself adds little period jitter.
-    """
-
-    def __init__(self, period_s: float, start_s: float, lock: bool = True, guard_s: float = 0.0015,
-                 min_margin_s: float = 0.003, acquire_slew_s: float = 0.002, track_slew_s: float = 0.0005,
-                 gain: float = 0.5) -> None:
-        self.period_s = period_s
-        self.next_tick_s = start_s + period_s
-        self.lock = lock
-        self.guard_s, self.min_margin_s = guard_s, min_margin_s
-        self.acquire_slew_s, self.track_slew_s, self.gain = acquire_slew_s, track_slew_s, gain
-        self._arrivals: deque[float] = deque(maxlen=64)
-        self.missed_ticks = 0
-        self.margin_s = min_margin_s  # current target delay after the frame grid (for logs)
-        self.locked = False
-
-    def frame_arrived(self, arrival_s: float) -> None:
-        self._arrivals.append(arrival_s)
-
-    def frame_period_s(self) -> float | None:
-        if len(self._arrivals) < 8:
-            return None
-        return float(np.median(np.diff(np.asarray(self._arrivals))))
-
-    def _phase_error_s(self, scheduled: float) -> float | None:
-        """How far (s, wrapped to +-P/2) the scheduled tick is from where the lock wants it."""
-        frame_period = self.frame_period_s()
-        if not frame_period or not 1e-3 < frame_period <= 1.2 * self.period_s:
-            return None
-        arrivals = np.asarray(self._arrivals)
-        newest = arrivals[-1]
-        if scheduled - newest > 2.0 * frame_period:
-            return None  # frames stopped: nothing to lock to
-        phases = (arrivals - newest + frame_period / 2.0) % frame_period - frame_period / 2.0
-        edge = float(np.percentile(phases, 5))  # the camera grid, before transport delays
-        lateness = float(np.percentile(phases - edge, 95))
-        target = float(np.clip(lateness + self.guard_s, self.min_margin_s, 0.4 * frame_period))
-        self.margin_s += 0.1 * (target - self.margin_s)  # ~1 s to follow: one late frame must not jerk the ticks
-        error = scheduled - (newest + edge + self.margin_s)
-        return (error + frame_period / 2.0) % frame_period - frame_period / 2.0
-
-    def advance(self, now_s: float) -> float:
-        """Schedule the tick after the one due now; return the correction applied (s)."""
-        scheduled = self.next_tick_s
-        correction = 0.0
-        error = self._phase_error_s(scheduled) if self.lock else None
-        if error is not None:
-            self.locked = abs(error) < 0.001
-            # A tick early of its frame gets the previous one (a whole frame period old): move
-            # later quickly. A tick late of its frame only waits a little longer: move earlier slowly.
-            earlier = self.track_slew_s if abs(error) < 0.005 else self.acquire_slew_s
-            correction = float(np.clip(-self.gain * error, -earlier, self.acquire_slew_s))
-        following = scheduled + self.period_s + correction
-        if following <= now_s:  # overran whole periods: skip them instead of bursting
-            missed = math.floor((now_s - following) / self.period_s) + 1
-            self.missed_ticks += missed
-            following += missed * self.period_s
-        self.next_tick_s = following
-        return correction
-
-
-class InferenceWorker:
-    """Runs the policy on its own thread, so the control loop can give up on a late answer.
-
-    One job at a time: :meth:`submit` hands over an observation, :meth:`wait` returns the
-    answer if it comes before a deadline. A job given up on keeps running (a TorchScript call
-    cannot be interrupted); its answer is discarded when it arrives and counted in
-    :attr:`discarded`, and until then :attr:`busy_since_s` says the worker is still busy.
-    Torch releases the GIL inside its operators, so the loop keeps running meanwhile.
-    """
-
-    def __init__(self, policy: LoadedPolicy) -> None:
-        self.policy = policy
-        self._cv = threading.Condition()
-        self._job: tuple[int, np.ndarray, np.ndarray] | None = None
-        self._results: dict[int, tuple[np.ndarray | None, BaseException | None, float]] = {}
-        self._abandoned: set[int] = set()
-        self._next_id = 0
-        self._stop = False
-        self.busy_since_s: float | None = None  # monotonic start of the job in progress
-        self.discarded: list[float] = []  # durations (s) of late answers thrown away, for the log
-        self._thread = threading.Thread(target=self._run, name="policy-inference", daemon=True)
-
-    #: Calls on a blank observation in the worker thread before the first real one: TorchScript's
-    #: profiling executor optimises per thread on the first calls (~20 ms instead of ~1.3 ms on the
-    #: bundled policy here), which would otherwise make the first engaged step late.
-    WARMUP_CALLS = 3
-
-    def start(self) -> None:
-        """Start the thread and return once it has warmed the policy up."""
-        import torch  # noqa: PLC0415 - the policy's runtime is already loaded
-
-        self._threads = torch.get_num_threads()  # the CLI's choice (1), applied in the worker too
-        self._warm = threading.Event()
-        self._thread.start()
-        self._warm.wait(timeout=60.0)
-
-    def _warm_up(self) -> None:
-        camera = self.policy.camera
-        depth = np.full((1, camera.frames, camera.height, camera.width), camera.max_range_m, np.float32)
-        state = np.zeros((1, STATE_DIM), np.float32)
-        state[0, 0] = 10.0  # a goal ahead
-        for _ in range(self.WARMUP_CALLS):
-            try:
-                self.policy.act(depth, state)
-            except Exception:  # noqa: BLE001 - a failing policy is reported by the first real call
-                break
-        self._warm.set()
-
-    def submit(self, depth: np.ndarray, state: np.ndarray) -> int:
-        """Start inference on a copy of the observation; return the job id."""
-        with self._cv:
-            self._next_id += 1
-            self._job = (self._next_id, np.array(depth, dtype=np.float32), np.array(state, dtype=np.float32))
-            self.busy_since_s = time.monotonic()
-            self._cv.notify_all()
-            return self._next_id
-
-    def wait(self, job_id: int, deadline_s: float) -> tuple[np.ndarray | None, BaseException | None, float] | None:
-        """(output, error, seconds) of ``job_id``, or None if not done by ``deadline_s`` (it is then abandoned)."""
-        with self._cv:
-            while job_id not in self._results:
-                remaining = deadline_s - time.monotonic()
-                if remaining <= 0:
-                    self._abandoned.add(job_id)
-                    return None
-                self._cv.wait(remaining)
-            return self._results.pop(job_id)
-
-    def _run(self) -> None:
-        import torch  # noqa: PLC0415
-
-        torch.set_num_threads(self._threads)
-        self._warm_up()
-        while True:
-            with self._cv:
-                while self._job is None and not self._stop:
-                    self._cv.wait()
-                if self._stop:
-                    return
-                job_id, depth, state = self._job
-                self._job = None
-            started = time.perf_counter()
-            output = error = None
-            try:
-                output = np.asarray(self.policy.act(depth, state), dtype=np.float64).reshape(-1)
-            except Exception as err:  # noqa: BLE001 - a TorchScript runtime error is reported, not fatal
-                error = err
-            seconds = time.perf_counter() - started
-            with self._cv:
-                self.busy_since_s = None
-                if job_id in self._abandoned:
-                    self._abandoned.discard(job_id)
-                    self.discarded.append(seconds)
-                else:
-                    self._results[job_id] = (output, error, seconds)
-                self._cv.notify_all()
-
-    def close(self) -> None:
-        with self._cv:
-            self._stop = True
-            self._cv.notify_all()
-        if self._thread.is_alive():
-            self._thread.join(timeout=0.2)  # a call in progress cannot be interrupted: it is a daemon
 
 
 class Companion:

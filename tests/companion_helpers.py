@@ -174,13 +174,15 @@ class Processes:
         self.tmp_path = tmp_path
         self.procs: list[tuple[str, subprocess.Popen]] = []
 
-    def start(self, name: str, args: list[str], extra_env: dict | None = None) -> subprocess.Popen:
+    def start(self, name: str, args: list[str], extra_env: dict | None = None,
+              prefix: tuple[str, ...] = ()) -> subprocess.Popen:
+        """``python ARGS`` (after ``prefix``, e.g. ``chrt -f 20``) in its own process group; output in NAME.out/.err."""
         e = env()
         if extra_env:
             e.update(extra_env)
         out = open(self.tmp_path / f"{name}.out", "wb")  # noqa: SIM115
         err = open(self.tmp_path / f"{name}.err", "wb")  # noqa: SIM115
-        proc = subprocess.Popen([sys.executable, *args], cwd=REPO, env=e, stdout=out, stderr=err,
+        proc = subprocess.Popen([*prefix, sys.executable, *args], cwd=REPO, env=e, stdout=out, stderr=err,
                                 start_new_session=True)
         out.close()
         err.close()
@@ -190,15 +192,28 @@ class Processes:
     def stderr(self, name: str) -> str:
         return (self.tmp_path / f"{name}.err").read_text(errors="replace")
 
-    def stop_all(self) -> None:
-        for _name, proc in self.procs:
+    def stop_all(self, grace_s: float = 3.0, newest_first: bool = False) -> None:
+        """SIGTERM every process group still running, SIGKILL what is left after ``grace_s``.
+
+        By default all at once. ``newest_first``: one at a time from the last started, each
+        given ``grace_s`` (a companion must hand its vehicle over before the vehicle goes).
+        """
+        if newest_first:
+            for _name, proc in reversed(self.procs):
+                self._terminate([proc], grace_s)
+        else:
+            self._terminate([proc for _name, proc in self.procs], grace_s)
+
+    @staticmethod
+    def _terminate(procs: list[subprocess.Popen], grace_s: float) -> None:
+        for proc in procs:
             if proc.poll() is None:
                 try:
                     os.killpg(proc.pid, signal.SIGTERM)
                 except ProcessLookupError:
                     pass
-        deadline = time.monotonic() + 3.0
-        for _name, proc in self.procs:
+        deadline = time.monotonic() + grace_s
+        for proc in procs:
             try:
                 proc.wait(timeout=max(0.1, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:

@@ -20,7 +20,7 @@ from companion.flight_modes import AutopilotKind, is_companion_mode, mode_name, 
 from companion.mavlink_link import load_signing_key, normalize_connection, odometry_from_msg
 from companion.observation import DepthFrameError
 from companion.recording import FlightRecorder, RecordingError, read_recording
-from companion.runtime import ControlClock
+from companion.clock import ControlClock
 from companion.sdnotify import SystemdNotifier
 from companion.spec import CameraSpec
 from tests.companion_helpers import env

@@ -143,13 +143,15 @@ def test_a_recipe_run_reports_its_whole_recipe(tmp_path):
 
     run = tmp_path / "s0"
     (run / "stage2-b").mkdir(parents=True)
+    stages = [{"run_dir": "stage1-a", "updates": 800}, {"run_dir": "stage2-b", "updates": 600}]
+    # final_eval.json is the exported policy's provenance: the recipe's record there is what counts
     (run / "final_eval.json").write_text(json.dumps(
-        {"updates": 900, "wall_time_s": 60.0, "evaluation": {"scenario": "random", "success_rate": 0.8}}))
+        {"updates": 600, "wall_time_s": 60.0, "evaluation": {"scenario": "random", "success_rate": 0.8},
+         "recipe": {"stages": stages, "wall_time_s": 1795.0}}))
     (run / "stage2-b" / "learning_curve.json").write_text(json.dumps({"eval_success": [0.5, 0.7]}))
-    (run / "recipe.json").write_text(json.dumps({"done": True, "wall_s": 1800.0, "stages": [
-        {"run_dir": "stage1-a", "updates": 800}, {"run_dir": "stage2-b", "updates": 600}]}))
+    (run / "recipe.json").write_text(json.dumps({"done": True, "wall_s": 1800.0, "stages": stages}))
     result = run_result(run)
-    assert result["updates"] == 1400 and result["wall_time_s"] == 1800.0
+    assert result["updates"] == 1400 and result["wall_time_s"] == 1795.0
     assert result["last_validation_success"] == 0.7 and result["final_success"] == {"random": 0.8}
 
 

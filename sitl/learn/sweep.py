@@ -237,8 +237,10 @@ def run_result(run_dir: Path) -> dict | None:
     result = {"last_validation_success": validations[-1] if validations else None, "final_success": finals,
               "updates": final.get("updates"), "wall_time_s": final.get("wall_time_s"),
               "selected_snapshot": (final.get("selected_snapshot") or {}).get("updates")}
-    if recipe and recipe.get("done"):  # the whole recipe's updates and its end-to-end wall time
-        result |= {"updates": sum(stage["updates"] for stage in recipe["stages"]), "wall_time_s": recipe["wall_s"]}
+    exported = final.get("recipe")  # a recipe's export: the whole recipe's updates and its end-to-end wall
+    if exported:                     # time, as policy.json's provenance records them (the one source)
+        result |= {"updates": sum(stage["updates"] for stage in exported["stages"]),
+                   "wall_time_s": exported["wall_time_s"]}
     return result
 
 
