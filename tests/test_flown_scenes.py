@@ -130,6 +130,11 @@ def test_success_by_goal_altitude_bins():
     assert split["below 3 m"]["uav_episodes"] == 2 and split["below 3 m"]["success_rate"] == 0.5
     assert split["below 3 m"]["timeout_rate"] == 0.5
     assert split["3-6 m"]["success_rate"] == 1.0 and split["above 6 m"]["success_rate"] == 0.0
+    from sitl.eval.flown import _altitude_cells  # the table shows each bin's interval: a small bin is a wide one
+
+    two_episodes = success_by_goal_altitude([rec(0, 2.0, "arrived"), rec(1, 2.5, "timeout")])
+    assert _altitude_cells(two_episodes)[0] == f"0.500 ± {two_episodes['below 3 m']['success_ci95_half_width']:.3f} (2)"
+    assert _altitude_cells(two_episodes)[1:] == ["-", "-"]
 
 
 def test_flown_protocol_writes_cells_table_and_plot_and_resumes(tmp_path, capsys):
@@ -146,6 +151,11 @@ def test_flown_protocol_writes_cells_table_and_plot_and_resumes(tmp_path, capsys
                                                                                          "above 6 m"}
     assert main(argv) == 0
     assert "0 computed, 5 reused" in capsys.readouterr().out
-    with pytest.raises(SystemExit) as exc:
-        main(["flown", "--episodes", "0"])
-    assert exc.value.code == 2
+    assert main([*argv, "--cells", "obstacles,random-small"]) == 0  # a subset: only those cells, still reused
+    printed = capsys.readouterr().out
+    assert "0 computed, 2 reused" in printed and "| random-medium |" not in printed
+    assert "| obstacles | straight |" in printed
+    for bad in (["--episodes", "0"], ["--cells", "random-huge"], ["--cells", "random-medium-jsbsim", "--no-jsbsim"]):
+        with pytest.raises(SystemExit) as exc:
+            main(["flown", *bad])
+        assert exc.value.code == 2

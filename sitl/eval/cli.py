@@ -366,8 +366,20 @@ def paper_main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def _cell_names(text: str) -> tuple[str, ...]:
+    """``--cells``: names of the flown protocol's cells, comma-separated."""
+    from sitl.eval.flown import FLOWN_CELL_NAMES
+
+    names = tuple(name.strip() for name in text.split(",") if name.strip())
+    unknown = [name for name in names if name not in FLOWN_CELL_NAMES]
+    if not names or unknown:
+        raise argparse.ArgumentTypeError(f"unknown cell {', '.join(unknown) or repr(text)}; "
+                                         f"choose from {', '.join(FLOWN_CELL_NAMES)}")
+    return names
+
+
 def parse_flown_args(argv: list[str] | None = None) -> argparse.Namespace:
-    from sitl.eval.flown import DEFAULT_EPISODES
+    from sitl.eval.flown import DEFAULT_EPISODES, FLOWN_CELL_NAMES
 
     parser = ArgumentParser(
         prog="python -m sitl.swarm_test flown",
@@ -385,6 +397,9 @@ def parse_flown_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--jsbsim-episodes", type=int_range(1, MAX_EPISODES), default=None,
                         help="episodes of the JSBSim cell (default --episodes; it runs ~10x slower)")
     parser.add_argument("--no-jsbsim", dest="jsbsim", action="store_false", help="leave the JSBSim cell out")
+    parser.add_argument("--cells", type=_cell_names, default=None,
+                        help=f"only these cells, comma-separated (default all: {', '.join(FLOWN_CELL_NAMES)}); e.g. "
+                             "random-medium --episodes 5000 to resolve its goal-altitude bins")
     parser.add_argument("--seed", type=int_range(0), default=0,
                         help=f"evaluation seed; the simulator uses {EVAL_SEED_OFFSET} + SEED, disjoint from training")
     parser.add_argument("--camera", type=camera_preset, default=None,
@@ -419,6 +434,10 @@ def flown_main(argv: list[str] | None = None) -> int:
         torch.set_num_threads(args.threads)
     cells = flown_cells(args.episodes, args.seed, args.camera_noise, max_steps=args.max_steps, batch=args.batch,
                         jsbsim=args.jsbsim, jsbsim_episodes=args.jsbsim_episodes, camera=args.camera)
+    if args.cells:
+        cells = [cell for cell in cells if cell.name in args.cells]
+        if not cells:
+            args.parser.error("--cells names only the JSBSim cell, which --no-jsbsim leaves out")
     try:
         result = run_flown(args.out, cells, methods, args.progress)
     except (EvaluationError, OSError) as err:

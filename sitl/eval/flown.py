@@ -68,6 +68,10 @@ def flown_cells(episodes: int = DEFAULT_EPISODES, seed: int = 0, camera_noise: b
     return cells
 
 
+#: The cells' names, in the order they are flown (``--cells`` picks among them).
+FLOWN_CELL_NAMES: tuple[str, ...] = tuple(cell.name for cell in flown_cells())
+
+
 def _cell_key(cell: FlownCell, method: Method) -> dict:
     """What a stored result must match to be reused: the settings and the exact controller."""
     return {"protocol": "flown", "cell": cell.name, "method": method.label,
@@ -99,7 +103,9 @@ def _altitude_cells(split: dict) -> list[str]:
     for label, *_ in GOAL_ALTITUDE_BINS_M:
         b = split[label]
         rate = b["success_rate"]
-        out.append("-" if rate is None or rate != rate else f"{rate:.3f} ({b['uav_episodes']})")
+        half = b.get("success_ci95_half_width")
+        ci = f" ± {half:.3f}" if half is not None and half == half else ""
+        out.append("-" if rate is None or rate != rate else f"{rate:.3f}{ci} ({b['uav_episodes']})")
     return out
 
 
@@ -142,7 +148,7 @@ def run_flown(out: Path, cells: list[FlownCell], methods: list[Method], progress
     lines += ["## Metrics", "",
               markdown_table(["cell", "method"], [([c.name, m.label], results[c.name][m.label]["summary"])
                                                    for c in cells for m in methods]), "",
-              "## Success by goal altitude (UAV-episodes in brackets)", "",
+              "## Success by goal altitude (± 95 % CI, UAV-episodes in brackets)", "",
               "| cell | method | " + " | ".join(label for label, *_ in GOAL_ALTITUDE_BINS_M) + " |",
               "|---|---|" + "---|" * len(GOAL_ALTITUDE_BINS_M)]
     for c in cells:
