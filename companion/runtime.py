@@ -35,7 +35,7 @@ policy output not finite or the policy raising, or the policy's answer not ready
 deadline (the newest frame's arrival + the stale limit, or the next tick if sooner:
 ``policy inference late``) ->
 zero-velocity hold; every command is clamped to the policy's action bounds. Inference
-runs on its own thread (:class:`InferenceWorker`), so a slow policy cannot stall the loop;
+runs on its own thread (:class:`companion.inference.InferenceWorker`), so a slow policy cannot stall the loop;
 a late answer is discarded when it comes, and the ticks hold while it is still running.
 The loop also wakes when the inputs would go stale, so a stale-input hold goes out at once
 (an extra step between ticks), not at the next tick.
