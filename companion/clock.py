@@ -38,6 +38,10 @@ class ControlClock:
         self.margin_s = min_margin_s  # current target delay after the frame grid (for logs)
         self.locked = False
 
+    def start(self, now_s: float) -> None:
+        """(Re)start the ticks: the first is due one period after ``now_s``."""
+        self.next_tick_s = now_s + self.period_s
+
     def frame_arrived(self, arrival_s: float) -> None:
         self._arrivals.append(arrival_s)
 

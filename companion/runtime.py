@@ -248,7 +248,8 @@ class Companion:
         gc.collect()
         gc.freeze()
         now = time.monotonic()
-        clock = self.clock = ControlClock(self.period_s, now, lock=self.config.camera_sync)
+        clock = self.clock
+        clock.start(now)  # ticks count from the loop's start, not from construction (model loading lies between)
         self.worker.start()
         next_heartbeat_s = now
         self.link.send_heartbeat()

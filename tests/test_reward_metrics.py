@@ -133,3 +133,20 @@ def test_the_ground_counts_in_d_min_only_when_the_reward_config_says_so():
     near_uav = _hover_reward(8.0, counts_ground=False, other_ahead_m=3.0)
     assert near_uav == pytest.approx(-0.05 * (5.0 - 2.7), abs=2e-3)
     assert _hover_reward(8.0, counts_ground=True, other_ahead_m=3.0) == pytest.approx(near_uav, abs=1e-6)
+
+
+def test_the_training_config_sets_the_collision_reward_the_environment_pays():
+    """``sitl.train --collision-reward`` reaches eq. 4 in the simulator (paper -10 by default); a reward
+    above 0 is refused."""
+    from sitl.learn.config import TrainConfig, make_sim_config
+
+    assert make_sim_config(TrainConfig(), num_worlds=1).reward.r_collision == RewardConfig().r_collision == -10.0
+    cfg = make_sim_config(TrainConfig(collision_reward=-50.0), num_worlds=1)
+    env = SwarmEnv(SimConfig(num_uavs=2, reward=cfg.reward,
+                             scenario=ScenarioConfig(name="circle", circle_radius_m=3.0, circle_jitter_m=0.0)), seed=1)
+    env.reset()
+    while not env.world_done.all():
+        _, r, *_ = env.step(np.tile([2.0, 0.0, 0.0], (2, 1)))
+    assert -50.0 < r[0] < -49.0  # -50 plus a little progress
+    with pytest.raises(ValueError, match="collision_reward"):
+        TrainConfig(collision_reward=5.0)

@@ -33,8 +33,9 @@ from sitl.eval.flown import flown_cells
 from sitl.eval.methods import DEFAULT_POLICY, EvaluationError, resolve_method
 from sitl.eval.visibility import camera_fov_rad, in_view
 
-#: The flown protocol's cells this tool can fly (the JSBSim cell is left out: the kinematic model is what it observes).
-FLOWN_CELLS = tuple(c.name for c in flown_cells(episodes=1, jsbsim=False))
+#: The flown protocol's kinematic cells, the ones this tool can fly (not the JSBSim cell: the tool observes the
+#: kinematic model). ``sitl.eval.flown.FLOWN_CELL_NAMES`` has them all.
+KINEMATIC_FLOWN_CELLS = tuple(c.name for c in flown_cells(episodes=1, jsbsim=False))
 LOOKBACK_S = 1.0  # "could have seen it coming": in view at some step of this window before the collision
 TIME_BINS_S = (1.0, 2.0, 5.0)  # collision time since the episode start, for the table
 
@@ -147,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--protocol", choices=("paper", "flown"), default="paper",
                         help="paper: the scene given by --scenario/--density/--radius/--n (paper geometry, "
                              "perfect depth); flown: one cell of `swarm_test flown` (--cell), as it flies it")
-    parser.add_argument("--cell", choices=FLOWN_CELLS, default="random-medium",
+    parser.add_argument("--cell", choices=KINEMATIC_FLOWN_CELLS, default="random-medium",
                         help="the flown protocol's cell (with --protocol flown)")
     parser.add_argument("--scenario", choices=("random", "circle"), default="random")
     parser.add_argument("--density", choices=tuple(DENSITIES), default="medium")

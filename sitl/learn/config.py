@@ -71,6 +71,9 @@ class TrainConfig:
     mount_pitch_jitter_deg: float = _param(0.0, "camera mount pitch drawn per episode within +-deg of the mount")
     avoid_counts_ground: bool = _param(False, "eq. 4's d_min counts the ground, as in the paper (default: UAVs and "
                                               "obstacles only; docs/training.md)")
+    collision_reward: float = _param(RewardConfig.r_collision,
+                                     "eq. 4's r_collision, the reward of the step a UAV collides (paper: -10; "
+                                     "docs/training.md 'The collision reward')")
     max_episode_steps: int = _param(200, "episode time limit in 0.1 s steps of training and of the trainer's own "
                                          "evaluations (validation, rescoring and policy.json's final evaluation); "
                                          "swarm_test flies its own --max-steps (default "
@@ -142,6 +145,8 @@ class TrainConfig:
             raise ValueError(f"yaw_jitter_deg must be in [0, 180], got {self.yaw_jitter_deg}")
         if not 0.0 <= self.updates_per_env_step <= 10_000.0:
             raise ValueError(f"updates_per_env_step must be in [0, 10000], got {self.updates_per_env_step}")
+        if not -1_000.0 <= self.collision_reward <= 0.0:
+            raise ValueError(f"collision_reward must be in [-1000, 0], got {self.collision_reward}")
         if not 0.0 <= self.teacher_bc_weight <= 100.0:
             raise ValueError(f"teacher_bc_weight must be in [0, 100], got {self.teacher_bc_weight}")
         if not 0.0 < self.checkpoint_every_s < math.inf:
@@ -296,7 +301,7 @@ def make_sim_config(cfg: TrainConfig, num_worlds: int, record_paths: bool = Fals
                      camera_noise=StereoNoise(min_range_m=camera.min_range_m) if cfg.camera_noise else None,
                      mount_pitch_jitter_deg=cfg.mount_pitch_jitter_deg if training else 0.0,
                      max_episode_steps=cfg.max_episode_steps, record_paths=record_paths,
-                     reward=RewardConfig(arrival_radius_m=cfg.arrival_radius_m,
+                     reward=RewardConfig(arrival_radius_m=cfg.arrival_radius_m, r_collision=cfg.collision_reward,
                                          avoid_counts_ground=cfg.avoid_counts_ground))
 
 
