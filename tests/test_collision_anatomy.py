@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from sitl.eval.collision_anatomy import analyse, main
+from sitl.eval.collision_anatomy import analyse, main, moving_in_view
 from sitl.eval.visibility import in_view
 from sitl.sim.config import ScenarioConfig
 from sitl.eval.evaluate import EvalSettings
@@ -42,7 +42,21 @@ def test_head_on_collisions_are_seen_by_both(tmp_path, capsys):
     assert summary["time_5_inf_s"] + summary["time_2_5_s"] == result["collisions"]
     # Both fly straight at full speed (2 m/s) into each other.
     assert 1.8 < summary["median_speed_when_saw_m_s"] <= 2.05 and 3.5 < summary["median_closing_speed_m_s"] <= 4.1
+    assert summary["collider_moved_out_of_view"] == 0  # level flight along the heading
     assert "| all UAV-UAV collisions |" in capsys.readouterr().out
+
+
+def test_moving_in_view_is_the_velocity_direction_in_the_frustum():
+    """Climbing at 0.5 m/s is blind to a D435 (58 deg vertical FOV) unless the UAV also flies forward fast enough."""
+    hfov, vfov = math.radians(87), math.radians(58)
+    north = 0.0
+    assert moving_in_view(np.array([2.0, 0.0, 0.0]), north, hfov, vfov)  # forward
+    assert moving_in_view(np.array([2.0, 0.0, -0.5]), north, hfov, vfov)  # 14 deg up
+    assert not moving_in_view(np.array([0.3, 0.0, -0.5]), north, hfov, vfov)  # 59 deg up
+    assert not moving_in_view(np.array([0.0, 0.0, 0.5]), north, hfov, vfov)  # straight down
+    assert not moving_in_view(np.array([0.0, 1.0, 0.0]), north, hfov, vfov)  # sideways (east, facing north)
+    assert moving_in_view(np.array([0.0, 1.0, 0.0]), HALF_PI, hfov, vfov)  # east, facing east
+    assert moving_in_view(np.zeros(3), north, hfov, vfov)  # hovering
 
 
 def test_bad_arguments_are_refused(capsys):

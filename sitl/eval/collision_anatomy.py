@@ -40,6 +40,18 @@ LOOKBACK_S = 1.0  # "could have seen it coming": in view at some step of this wi
 TIME_BINS_S = (1.0, 2.0, 5.0)  # collision time since the episode start, for the table
 
 
+def moving_in_view(velocity_ned: np.ndarray, yaw_rad: float, hfov_rad: float, vfov_rad: float) -> bool:
+    """Whether a UAV flies where its (level, forward) camera looks: its velocity's direction inside the frustum.
+
+    A UAV that climbs or descends steeply at low forward speed moves into space its camera does not
+    cover (a D435 sees +-29 deg vertically); one that is still counts as in view.
+    """
+    speed = float(np.linalg.norm(velocity_ned))
+    if speed < 1e-6:
+        return True
+    return bool(in_view(np.zeros(3), np.asarray(yaw_rad), np.asarray(velocity_ned) / speed, hfov_rad, vfov_rad, 2.0))
+
+
 class CollisionObserver:
     """Records, around every control step, what it needs to classify UAV-UAV collisions.
 
@@ -81,6 +93,7 @@ class CollisionObserver:
             seen = any(in_view(pos[partner], yaw[partner], pos[r], self.hfov, self.vfov, self.max_range_m)
                        for pos, yaw in window)
             velocity = (after - before) / self.dt
+            heading_seen = moving_in_view(velocity[r], self.recent[-1][1][r], self.hfov, self.vfov)
             offset = before[partner] - before[r]
             gap_rate = np.dot(velocity[partner] - velocity[r], offset) / max(np.linalg.norm(offset), 1e-6)
             self.events.append({"episode": episode, "uav": int(r % n), "partner": int(partner % n),
@@ -88,7 +101,8 @@ class CollisionObserver:
                                 "closing_speed_m_s": round(float(-gap_rate), 2),
                                 "time_s": round(int(env.world_steps[world]) * self.dt, 2),
                                 "collider_saw_partner": bool(saw), "partner_saw_collider": bool(seen),
-                                "partner_was_done": bool(not acting[partner])})
+                                "partner_was_done": bool(not acting[partner]),
+                                "collider_moved_in_view": heading_seen})
 
 
 def analyse(policy: str, settings: EvalSettings, progress: bool = False) -> dict:
@@ -112,6 +126,8 @@ def summarize_events(events: list[dict], uav_episodes: int) -> dict:
         "only_partner_saw": count(lambda e: not e["collider_saw_partner"] and e["partner_saw_collider"]),
         "neither_saw": count(lambda e: not e["collider_saw_partner"] and not e["partner_saw_collider"]),
         "with_a_finished_uav": count(lambda e: e["partner_was_done"]),
+        # e.g. climbing or descending steeply at low forward speed: outside a D435's +-29 deg
+        "collider_moved_out_of_view": count(lambda e: not e.get("collider_moved_in_view", True)),
     }
     for name, pick in (("saw", lambda e: e["collider_saw_partner"]), ("did_not_see", lambda e: not e["collider_saw_partner"])):
         speeds = [e["speed_m_s"] for e in events if pick(e)]
@@ -130,7 +146,9 @@ def format_table(result: dict) -> str:
             (f"collider had the partner in view (last {result['lookback_s']:g} s)", s["collider_saw_partner"]),
             ("only the partner had the collider in view", s["only_partner_saw"]),
             ("neither had the other in view", s["neither_saw"]),
-            ("partner had already finished (hovering at its goal)", s["with_a_finished_uav"])]
+            ("partner had already finished (hovering at its goal)", s["with_a_finished_uav"]),
+            ("collider was moving outside its camera's view (its velocity's direction)",
+             s["collider_moved_out_of_view"])]
     rows += [(f"collided {k[5:-2].replace('_', '-')} s after the start", v) for k, v in s.items()
              if k.startswith("time_")]
     lines = [f"{result['policy']}: {result['scenario']} ({result['uav_episodes']} UAV-episodes)",
