@@ -49,7 +49,9 @@ def moving_in_view(velocity_ned: np.ndarray, yaw_rad: float, hfov_rad: float, vf
     speed = float(np.linalg.norm(velocity_ned))
     if speed < 1e-6:
         return True
-    return bool(in_view(np.zeros(3), np.asarray(yaw_rad), np.asarray(velocity_ned) / speed, hfov_rad, vfov_rad, 2.0))
+    # The unit direction is a point 1 m away: any range above 1 m keeps only the frustum's angles.
+    return bool(in_view(np.zeros(3), np.asarray(yaw_rad), np.asarray(velocity_ned) / speed, hfov_rad, vfov_rad,
+                        max_range_m=np.inf))
 
 
 class CollisionObserver:
@@ -127,7 +129,7 @@ def summarize_events(events: list[dict], uav_episodes: int) -> dict:
         "neither_saw": count(lambda e: not e["collider_saw_partner"] and not e["partner_saw_collider"]),
         "with_a_finished_uav": count(lambda e: e["partner_was_done"]),
         # e.g. climbing or descending steeply at low forward speed: outside a D435's +-29 deg
-        "collider_moved_out_of_view": count(lambda e: not e.get("collider_moved_in_view", True)),
+        "collider_moved_out_of_view": count(lambda e: not e["collider_moved_in_view"]),
     }
     for name, pick in (("saw", lambda e: e["collider_saw_partner"]), ("did_not_see", lambda e: not e["collider_saw_partner"])):
         speeds = [e["speed_m_s"] for e in events if pick(e)]
