@@ -150,3 +150,32 @@ def test_the_training_config_sets_the_collision_reward_the_environment_pays():
     assert -50.0 < r[0] < -49.0  # -50 plus a little progress
     with pytest.raises(ValueError, match="collision_reward"):
         TrainConfig(collision_reward=5.0)
+
+
+def _first_collision_reward(reward: RewardConfig, obstacle: bool) -> float:
+    """The reward of the step in which UAV 0, flying straight north at 2 m/s, hits UAV 1 flying the other
+    way (or, with ``obstacle``, a 0.2 m pole half-way to its goal, with UAV 1 far away)."""
+    cfg = SimConfig(num_uavs=2, reward=reward, scenario=ScenarioConfig(name="random", density=0.01, min_goal_distance_m=0.0))
+    env = SwarmEnv(cfg, seed=0, cylinders=np.array([[[0.0, 0.0, 0.2, -30.0, 0.0]]]) if obstacle else None)
+    env.reset()
+    other_start = [40.0, 40.0, -8.0] if obstacle else [5.0, 0.0, -8.0]
+    env.dynamics.reset(np.array([0, 1]), np.array([[-5.0, 0.0, -8.0], other_start]), np.array([0.0, math.pi]))
+    env.goal_ned[0], env.goal_ned[1] = [5.0, 0.0, -8.0], [other_start[0] - 10.0, other_start[1], -8.0]
+    for _ in range(100):
+        _, r, term, *_ = env.step(np.tile([2.0, 0.0, 0.0], (2, 1)))
+        if term[0]:
+            return float(r[0])
+    raise AssertionError("UAV 0 never collided")
+
+
+def test_an_extra_price_on_uav_collisions_leaves_other_collisions_at_r_collision():
+    """``--uav-collision-extra-reward -40``: a UAV-UAV collision costs -50, a pole still the paper's -10."""
+    from sitl.learn.config import TrainConfig, make_sim_config
+
+    reward = make_sim_config(TrainConfig(uav_collision_extra_reward=-40.0), num_worlds=1).reward
+    assert (reward.r_collision, reward.r_collision_uav_extra) == (-10.0, -40.0)
+    assert -50.0 < _first_collision_reward(reward, obstacle=False) < -49.0  # -50 plus a little progress
+    assert -10.0 < _first_collision_reward(reward, obstacle=True) < -9.0
+    assert -10.0 < _first_collision_reward(RewardConfig(), obstacle=False) < -9.0  # the paper: no extra price
+    with pytest.raises(ValueError, match="uav_collision_extra_reward"):
+        TrainConfig(uav_collision_extra_reward=1.0)

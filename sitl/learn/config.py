@@ -47,7 +47,8 @@ class TrainConfig:
     """Everything a training run depends on besides the agent's hyperparameters."""
 
     preset: str = _param("fast", "fast (CPU, < 2 h), flown (the task as flown: low altitudes, obstacles, randomized "
-                                 "dynamics; the bundle's recipe), flown-fast (flown in <= 45 min), bundle-paper or paper "
+                                 "dynamics; the bundle's recipe), flown-fast (flown in <= 45 min), flown-fast-careful (a probe), "
+                                 "bundle-paper or paper "
                                  "(Table I literally); explicit flags override it")
     method: str = _param("sac_ae", f"learning method: {', '.join(METHODS)}")
     scenario: str = _param("random", "training scenario: random, circle or mixed (each episode one of the two)")
@@ -74,6 +75,9 @@ class TrainConfig:
     collision_reward: float = _param(RewardConfig.r_collision,
                                      "eq. 4's r_collision, the reward of the step a UAV collides (paper: -10; "
                                      "docs/training.md 'The collision reward')")
+    uav_collision_extra_reward: float = _param(RewardConfig.r_collision_uav_extra,
+                                               "added to r_collision when a UAV hits another UAV (paper: 0; "
+                                               "docs/training.md 'The collision reward')")
     max_episode_steps: int = _param(200, "episode time limit in 0.1 s steps of training and of the trainer's own "
                                          "evaluations (validation, rescoring and policy.json's final evaluation); "
                                          "swarm_test flies its own --max-steps (default "
@@ -147,6 +151,8 @@ class TrainConfig:
             raise ValueError(f"updates_per_env_step must be in [0, 10000], got {self.updates_per_env_step}")
         if not -1_000.0 <= self.collision_reward <= 0.0:
             raise ValueError(f"collision_reward must be in [-1000, 0], got {self.collision_reward}")
+        if not -1_000.0 <= self.uav_collision_extra_reward <= 0.0:
+            raise ValueError(f"uav_collision_extra_reward must be in [-1000, 0], got {self.uav_collision_extra_reward}")
         if not 0.0 <= self.teacher_bc_weight <= 100.0:
             raise ValueError(f"teacher_bc_weight must be in [0, 100], got {self.teacher_bc_weight}")
         if not 0.0 < self.checkpoint_every_s < math.inf:
@@ -268,6 +274,18 @@ PRESETS["flown-fast"]["stages"] = tuple(
                                      ("obstacles", "obstacles", 8, "medium"))})))
 
 
+# Probe (docs/training.md "The collision reward"): flown-fast with a UAV-UAV collision costing -50
+# instead of -10 in its last stage only (obstacles and the ground stay at the paper's -10). A
+# fourth stage with that price lifted every seed's random scenes by 1-2 points; this asks
+# whether the same price inside the third stage does so without the fourth stage's time.
+PRESETS["flown-fast-careful"] = {
+    **PRESETS["flown-fast"],
+    "stages": PRESETS["flown-fast"]["stages"][:-1] + (dataclasses.replace(
+        PRESETS["flown-fast"]["stages"][-1], description="the same mix at learning rates 3e-4, a UAV-UAV collision at -50",
+        train={**PRESETS["flown-fast"]["stages"][-1].train, "uav_collision_extra_reward": -40.0}),),
+}
+
+
 def resolve_configs(train_values: dict, agent_values: dict) -> tuple[TrainConfig, AgentConfig]:
     """The two configs of a run: dataclass defaults, then the preset (``train_values["preset"]``), then the values given.
 
@@ -302,6 +320,7 @@ def make_sim_config(cfg: TrainConfig, num_worlds: int, record_paths: bool = Fals
                      mount_pitch_jitter_deg=cfg.mount_pitch_jitter_deg if training else 0.0,
                      max_episode_steps=cfg.max_episode_steps, record_paths=record_paths,
                      reward=RewardConfig(arrival_radius_m=cfg.arrival_radius_m, r_collision=cfg.collision_reward,
+                                         r_collision_uav_extra=cfg.uav_collision_extra_reward,
                                          avoid_counts_ground=cfg.avoid_counts_ground))
 
 

@@ -564,7 +564,7 @@ class Trainer:
             # The camera conditions it was trained in (policy.json's depth has the geometry).
             "camera": cfg.camera, "camera_noise": cfg.camera_noise,
             "mount_pitch_jitter_deg": cfg.mount_pitch_jitter_deg, "avoid_counts_ground": cfg.avoid_counts_ground,
-            "collision_reward": cfg.collision_reward,
+            "collision_reward": cfg.collision_reward, "uav_collision_extra_reward": cfg.uav_collision_extra_reward,
         }
         if cfg.teacher_bc_weight > 0:  # teacher-guided SAC+AE: not the paper's method alone
             provenance["teacher"] = {"kind": "orca (privileged)", "bc_weight": cfg.teacher_bc_weight,

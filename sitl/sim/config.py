@@ -31,6 +31,9 @@ class RewardConfig:
 
     r_arrival: float = 50.0
     r_collision: float = -10.0
+    #: Added to r_collision when the collision is with another UAV (0, the paper: every collision
+    #: costs the same). A training option (docs/training.md "The collision reward").
+    r_collision_uav_extra: float = 0.0
     w_goal: float = 3.0
     w_avoid: float = -0.05
     d_safe_m: float = 5.0

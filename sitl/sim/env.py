@@ -227,7 +227,7 @@ class SwarmEnv:
         depth = self._render()
         self.frames.push(depth)
         d_min = nearest_depth_m(depth) if cfg.reward.avoid_counts_ground else self.nearest_object_m
-        reward = step_reward(prev_dist, dist, arrived, collided, d_min, cfg.reward)
+        reward = step_reward(prev_dist, dist, arrived, collided, d_min, cfg.reward, hit_uav)
         reward = np.where(acting, reward, 0.0).astype(np.float32)
         terminated = collided | arrived
         info = {"acting": acting, "outcome": self.outcome.copy(), "collided": collided, "arrived": arrived}

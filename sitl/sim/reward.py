@@ -21,12 +21,18 @@ def goal_reward(prev_dist_m: np.ndarray, dist_m: np.ndarray, arrived: np.ndarray
     return np.where(arrived, cfg.r_arrival, cfg.w_goal * (prev_dist_m - dist_m))
 
 
-def avoid_reward(collided: np.ndarray, d_min_m: np.ndarray, cfg: RewardConfig) -> np.ndarray:
-    """Eq. 4: r_collision on a collision, else w_avoid * max(d_safe - d_min, 0)."""
-    return np.where(collided, cfg.r_collision, cfg.w_avoid * np.maximum(cfg.d_safe_m - d_min_m, 0.0))
+def avoid_reward(collided: np.ndarray, d_min_m: np.ndarray, cfg: RewardConfig,
+                 hit_uav: np.ndarray | None = None) -> np.ndarray:
+    """Eq. 4: r_collision on a collision, else w_avoid * max(d_safe - d_min, 0).
+
+    ``hit_uav`` marks the collisions with another UAV; they cost ``r_collision_uav_extra`` more
+    (0 in the paper, where it makes no difference).
+    """
+    r_collision = cfg.r_collision if hit_uav is None else cfg.r_collision + cfg.r_collision_uav_extra * hit_uav
+    return np.where(collided, r_collision, cfg.w_avoid * np.maximum(cfg.d_safe_m - d_min_m, 0.0))
 
 
 def step_reward(prev_dist_m: np.ndarray, dist_m: np.ndarray, arrived: np.ndarray, collided: np.ndarray,
-                d_min_m: np.ndarray, cfg: RewardConfig) -> np.ndarray:
+                d_min_m: np.ndarray, cfg: RewardConfig, hit_uav: np.ndarray | None = None) -> np.ndarray:
     """Eq. 2: r = r_goal + r_avoid. A UAV that collides gets no arrival bonus in the same step."""
-    return goal_reward(prev_dist_m, dist_m, arrived & ~collided, cfg) + avoid_reward(collided, d_min_m, cfg)
+    return goal_reward(prev_dist_m, dist_m, arrived & ~collided, cfg) + avoid_reward(collided, d_min_m, cfg, hit_uav)
