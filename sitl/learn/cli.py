@@ -14,8 +14,9 @@ Presets (``--preset``):
   each episode, replay capacity 20,000, 64x64 depth.
 * ``flown`` — a recipe (3 stages in one command): the task as drones fly it, RealSense D435
   camera with noise, 1.5-15 m, obstacles, randomized dynamics; the bundled policy's (~79 min).
-* ``flown-fast`` — the same task and stages with 512-unit MLPs, the decoder every second
-  update and a UAV-UAV collision at -50 in the last stage: 28-31 min on 2 cores (docs/training.md).
+* ``flown-fast`` — the same task with 512-unit MLPs, the decoder every second update, a
+  UAV-UAV collision at -50 from the third stage on and a fourth stage at learning rates 1e-4
+  with half of its episodes circles: 34-38 min on 2 cores (docs/training.md).
 * ``bundle-paper`` — a recipe: the paper-camera policy's four-stage curriculum.
 
 Everything is a command-line flag (``--help``); a run directory holds ``config.json``,
