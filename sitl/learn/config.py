@@ -267,7 +267,7 @@ PRESETS["flown-fast"]["agent"] = {**PRESETS["flown"]["agent"], **PRESETS["flown-
 # costs -50 instead of eq. 4's -10 (obstacles and the ground stay at -10): over three seeds +0.9
 # points in random scenes and +3.2 among obstacles at no extra time. A fourth stage at learning
 # rates 1e-4 with half of its episodes circles pulls the seeds together (paper-medium spread 5.2 ->
-# 2.8 points at the same means; at 30 % circles it broke one seed's circle); the final choice also
+# 2.8 points at the same means, 3.7 with a fourth seed; at 30 % circles it broke one seed's circle); the final choice also
 # flies obstacles (docs/training.md "The collision reward" and "Seeds").
 _SCENES_FLOWN_FAST = (("random-medium", "random", 8, "medium"), ("circle-n8", "circle", 8, "medium"),
                       ("obstacles", "obstacles", 8, "medium"))
