@@ -9,7 +9,8 @@ Measures, on this machine's CPU (``--threads`` torch threads):
   a recipe's first stage).
 
 The last line is one JSON object with ``updates_per_s`` (the preset's configuration: by default
-``flown``, the bundled policy's recipe: sac_ae, the RealSense D435 preset's 32x20 grid, 1024
+``flown``, the task as flown at the paper's width (the bundled policy's recipe until 2026-11-25;
+``--preset flown-fast`` is today's): sac_ae, the RealSense D435 preset's 32x20 grid, 1024
 hidden units) and ``env_steps_per_s`` (agent transitions per second while acting), plus every
 configuration measured.
 
@@ -112,7 +113,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--preset", default="flown", choices=sorted(PRESETS),
                         help="the headline configuration and the rollouts' scenes and camera (default flown: the "
-                             "bundled policy's recipe)")
+                             "task as flown at 1024 units; flown-fast: the bundle's recipe)")
     parser.add_argument("--sizes", type=parse_grid, nargs="+", default=None,
                         help="image grids, a side or WIDTHxHEIGHT, in the preset camera's field of view "
                              "(default: the preset's grid and 32, 64)")

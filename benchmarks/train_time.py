@@ -68,7 +68,8 @@ def extrapolate(timing: dict, preset: str) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     recipes = sorted(name for name, preset in PRESETS.items() if preset.get("stages"))
-    parser.add_argument("--preset", default="flown", choices=recipes, help="the recipe (default flown: the bundle's)")
+    parser.add_argument("--preset", default="flown", choices=recipes, help="the recipe (default flown, the bundle's until 2026-11-25; "
+                        "flown-fast is today's)")
     parser.add_argument("--scale", type=float, default=0.05, help="recipe scale of the timed trial (default 0.05)")
     parser.add_argument("--run", type=Path, default=None, help="report a recipe run's recorded times instead")
     parser.add_argument("--out", type=Path, default=None, help="where the trial trains (default: a scratch directory)")

@@ -34,6 +34,15 @@ class Interrupt(Exception):
     """Stands in for the end of a session in the middle of a recipe."""
 
 
+def stop_at_stage_two(messages: list[str]):
+    """A recipe log that records the messages and ends the "session" when stage 2 starts."""
+    def log(message: str) -> None:
+        messages.append(message)
+        if message.startswith("=== stage 2/2"):
+            raise Interrupt
+    return log
+
+
 def tiny_configs(run_dir: Path):
     return resolve_configs({**TINY, "run_dir": str(run_dir)}, {"hidden_dim": 32, "latent_dim": 8, "num_filters": 8})
 
@@ -41,14 +50,9 @@ def tiny_configs(run_dir: Path):
 def test_a_recipe_chains_its_stages_resumes_after_an_interruption_and_exports_once(tmp_path):
     cfg, agent_cfg = tiny_configs(tmp_path)
     messages: list[str] = []
-
-    def stop_at_stage_two(message: str) -> None:
-        messages.append(message)
-        if message.startswith("=== stage 2/2"):
-            raise Interrupt
-
     with pytest.raises(Interrupt):
-        Recipe(cfg, agent_cfg, STAGES, tmp_path, rescore_top=2, rescore_episodes=2, log=stop_at_stage_two).run()
+        Recipe(cfg, agent_cfg, STAGES, tmp_path, rescore_top=2, rescore_episodes=2,
+               log=stop_at_stage_two(messages)).run()
     state = json.loads((tmp_path / RECIPE_FILE).read_text())
     assert [s["name"] for s in state["stages"]] == ["first"] and not (tmp_path / "policy.pt").exists()
     first = state["stages"][0]
@@ -162,12 +166,9 @@ def test_a_rerun_with_the_same_seed_gives_the_same_policy_another_seed_another(t
         cfg, agent_cfg = tiny_configs(tmp_path / name)
         cfg = replace(cfg, seed=seed)
         if interrupt:
-            def stop_at_stage_two(message: str) -> None:
-                if message.startswith("=== stage 2/2"):
-                    raise Interrupt
             with pytest.raises(Interrupt):
                 Recipe(cfg, agent_cfg, STAGES, tmp_path / name, rescore_top=2, rescore_episodes=2,
-                       log=stop_at_stage_two).run()
+                       log=stop_at_stage_two([])).run()
         return Recipe(cfg, agent_cfg, STAGES, tmp_path / name, rescore_top=2, rescore_episodes=2,
                       log=lambda m: None).run()
 

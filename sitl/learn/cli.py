@@ -13,10 +13,12 @@ Presets (``--preset``):
 * ``paper`` — Table I literally: one world of 8 UAVs, 200 episodes, 400 updates after
   each episode, replay capacity 20,000, 64x64 depth.
 * ``flown`` — a recipe (3 stages in one command): the task as drones fly it, RealSense D435
-  camera with noise, 1.5-15 m, obstacles, randomized dynamics; the bundled policy's (~79 min).
+  camera with noise, 1.5-15 m, obstacles, randomized dynamics, at the paper's 1024 units (~79 min;
+  the bundled policy's recipe until 2026-11-25).
 * ``flown-fast`` — the same task with 512-unit MLPs, the decoder every second update, a
   UAV-UAV collision at -50 from the third stage on and a fourth stage at learning rates 1e-4
-  with half of its episodes circles: 34-38 min on 2 cores (docs/training.md).
+  with half of its episodes circles: 38-40 min on 2 cores, run whole; the bundled policy is its
+  seed 0 (docs/training.md, models/README.md).
 * ``bundle-paper`` — a recipe: the paper-camera policy's four-stage curriculum.
 
 Everything is a command-line flag (``--help``); a run directory holds ``config.json``,

@@ -47,7 +47,7 @@ class TrainConfig:
     """Everything a training run depends on besides the agent's hyperparameters."""
 
     preset: str = _param("fast", "fast (CPU, < 2 h), flown (the task as flown: low altitudes, obstacles, randomized "
-                                 "dynamics; the bundle's recipe), flown-fast (flown in <= 45 min), bundle-paper or paper "
+                                 "dynamics; 1024 units), flown-fast (flown in <= 45 min; the bundle's recipe), bundle-paper or paper "
                                  "(Table I literally); explicit flags override it")
     method: str = _param("sac_ae", f"learning method: {', '.join(METHODS)}")
     scenario: str = _param("random", "training scenario: random, circle or mixed (each episode one of the two)")
@@ -267,7 +267,7 @@ PRESETS["flown-fast"]["agent"] = {**PRESETS["flown"]["agent"], **PRESETS["flown-
 # costs -50 instead of eq. 4's -10 (obstacles and the ground stay at -10): over three seeds +0.9
 # points in random scenes and +3.2 among obstacles at no extra time. A fourth stage at learning
 # rates 1e-4 with half of its episodes circles pulls the seeds together (paper-medium spread 5.2 ->
-# 2.8 points at the same means, 3.7 with a fourth seed; at 30 % circles it broke one seed's circle); the final choice also
+# 2.8 points at the same means, 3.7 over five seeds; at 30 % circles it broke one seed's circle); the final choice also
 # flies obstacles (docs/training.md "The collision reward" and "Seeds").
 _SCENES_FLOWN_FAST = (("random-medium", "random", 8, "medium"), ("circle-n8", "circle", 8, "medium"),
                       ("obstacles", "obstacles", 8, "medium"))
