@@ -9,12 +9,13 @@ Measures, on this machine's CPU (``--threads`` torch threads):
   a recipe's first stage).
 
 The last line is one JSON object with ``updates_per_s`` (the preset's configuration: by default
-``flown``, the task as flown at the paper's width (the bundled policy's recipe until 2026-11-25;
-``--preset flown-fast`` is today's): sac_ae, the RealSense D435 preset's 32x20 grid, 1024
-hidden units) and ``env_steps_per_s`` (agent transitions per second while acting), plus every
+``flown-fast``, the bundled policy's recipe (``sitl.learn.config.BUNDLE_PRESET``): sac_ae, the
+RealSense D435 preset's 32x20 grid, 512 hidden units, the decoder every second update;
+``--preset flown`` is the same task at the paper's 1024 units, the bundle's recipe until
+2026-11-25) and ``env_steps_per_s`` (agent transitions per second while acting), plus every
 configuration measured.
 
-Usage: ``python benchmarks/train_speed.py [--preset flown] [--sizes 32 64 32x20 48x32]
+Usage: ``python benchmarks/train_speed.py [--preset flown-fast] [--sizes 32 64 32x20 48x32]
 [--methods sac_ae cnn drq] [--seconds 10] [--smoke]`` (a size is a square side or WIDTHxHEIGHT
 of the preset's field of view; ``--smoke``: the preset's configuration only, no warm-up update,
 a fraction of a second per measurement, and the rollouts reuse that agent; what CI runs.)
@@ -38,7 +39,8 @@ import dataclasses  # noqa: E402
 from companion.spec import DEFAULT_ACTION_SPEC, STATE_DIM, CameraSpec  # noqa: E402
 from sitl.learn.agent import AgentConfig, SacAeAgent  # noqa: E402
 from sitl.learn.buffer import FrameReplayBuffer  # noqa: E402
-from sitl.learn.config import PRESETS, TrainConfig, make_sim_config, resolve_configs, training_camera  # noqa: E402
+from sitl.learn.config import (BUNDLE_PRESET, PRESETS, TrainConfig, make_sim_config,  # noqa: E402
+                               resolve_configs, training_camera)
 from sitl.sim.env import SwarmEnv  # noqa: E402
 
 #: Seconds per measurement with --smoke: enough for one timed update on a busy 2-core machine.
@@ -111,14 +113,15 @@ def rollout_rate(seconds: float, agent: SacAeAgent | None = None, cfg: TrainConf
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--preset", default="flown", choices=sorted(PRESETS),
-                        help="the headline configuration and the rollouts' scenes and camera (default flown: the "
-                             "task as flown at 1024 units; flown-fast: the bundle's recipe)")
+    parser.add_argument("--preset", default=BUNDLE_PRESET, choices=sorted(PRESETS),
+                        help=f"the headline configuration and the rollouts' scenes and camera (default "
+                             f"{BUNDLE_PRESET}: the bundle's recipe; flown: the same task at 1024 units)")
     parser.add_argument("--sizes", type=parse_grid, nargs="+", default=None,
                         help="image grids, a side or WIDTHxHEIGHT, in the preset camera's field of view "
                              "(default: the preset's grid and 32, 64)")
     parser.add_argument("--methods", nargs="+", default=None, help="learning methods (default sac_ae cnn drq)")
-    parser.add_argument("--hidden", type=int, nargs="+", default=None, help="hidden units (default 1024 256)")
+    parser.add_argument("--hidden", type=int, nargs="+", default=None,
+                        help="hidden units (default: the preset's, 1024 and 256)")
     parser.add_argument("--seconds", type=float, default=None, help="seconds per measurement (default 10)")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--smoke", action="store_true",
@@ -145,7 +148,7 @@ def main() -> None:
     else:
         grids = args.sizes or list(dict.fromkeys([preset_grid, (32, 32), (64, 64)]))
         methods = args.methods or ["sac_ae", "cnn", "drq"]
-        hiddens = args.hidden or [1024, 256]
+        hiddens = args.hidden or list(dict.fromkeys([agent_cfg.hidden_dim, 1024, 256]))
         seconds = 10.0 if args.seconds is None else args.seconds
     if seconds <= 0:
         parser.error(f"--seconds must be > 0, got {seconds}")

@@ -3,7 +3,7 @@
 Two ways to get the number:
 
 * ``--run RUN``: read a recipe run's own record (``RUN/recipe.json``, written by ``python -m
-  sitl.train --preset flown``): each stage's updates and wall time, the rescoring and export
+  sitl.train --preset flown-fast``): each stage's updates and wall time, the rescoring and export
   after the last stage, and the total. Works on an unfinished run too (then it reports what
   is done). This is the real run's wall time, the number policy.json's
   ``provenance.recipe.wall_time_s`` records.
@@ -17,7 +17,7 @@ Two ways to get the number:
 The last line is one JSON object: ``wall_time_min`` (measured, ``--run``) or
 ``extrapolated_wall_time_min`` (at scale 1) and the per-stage rows.
 
-Usage: ``python benchmarks/train_time.py [--preset flown] [--scale 0.05] [--run RUN] [--smoke] [-- TRAIN FLAGS]``
+Usage: ``python benchmarks/train_time.py [--preset flown-fast] [--scale 0.05] [--run RUN] [--smoke] [-- TRAIN FLAGS]``
 (``--smoke``: the recipe at a tiny scale with tiny networks and worlds, seconds; what CI runs.)
 """
 
@@ -33,7 +33,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from sitl.learn.config import PRESETS  # noqa: E402
+from sitl.learn.config import BUNDLE_PRESET, PRESETS  # noqa: E402
 from sitl.learn.recipe import RECIPE_FILE  # noqa: E402
 
 #: --smoke: the recipe's code path in seconds (tiny networks, worlds and budgets).
@@ -68,8 +68,8 @@ def extrapolate(timing: dict, preset: str) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     recipes = sorted(name for name, preset in PRESETS.items() if preset.get("stages"))
-    parser.add_argument("--preset", default="flown", choices=recipes, help="the recipe (default flown, the bundle's until 2026-11-25; "
-                        "flown-fast is today's)")
+    parser.add_argument("--preset", default=BUNDLE_PRESET, choices=recipes,
+                        help=f"the recipe (default {BUNDLE_PRESET}, the bundle's; flown was until 2026-11-25)")
     parser.add_argument("--scale", type=float, default=0.05, help="recipe scale of the timed trial (default 0.05)")
     parser.add_argument("--run", type=Path, default=None, help="report a recipe run's recorded times instead")
     parser.add_argument("--out", type=Path, default=None, help="where the trial trains (default: a scratch directory)")

@@ -32,6 +32,33 @@ def test_flown_random_scene_spans_the_altitude_range_with_bounded_jitter():
     assert min(floors) < 3.0 and max(floors) > 10.0  # the floor is drawn per episode over the whole range
 
 
+def test_low_floor_fraction_oversamples_low_goals_in_training_worlds_only():
+    from sitl.learn.config import TrainConfig, make_sim_config
+
+    def goal_altitudes(cfg: ScenarioConfig, episodes: int = 400) -> np.ndarray:
+        rng = np.random.default_rng(5)
+        return np.concatenate([-sample_random(8, cfg, rng).goal_ned[:, 2] for _ in range(episodes)])
+
+    uniform = goal_altitudes(scenario_for("flown", "random"))
+    low = goal_altitudes(scenario_for("flown", "random", low_floor_fraction=0.25))
+    assert (low < 3.0).mean() > 2.5 * (uniform < 3.0).mean()  # ~3 % -> ~11 % of goals below 3 m
+    assert low.max() > 10.0  # the rest still spans the range
+    # every floor in the lowest band: the box (3.2 m tall at medium density) ends below lo + 1 m + its height
+    lo, _ = FLOWN_ALTITUDE_RANGE_M
+    always = goal_altitudes(scenario_for("flown", "random", low_floor_fraction=1.0), 50)
+    assert always.min() >= lo - 1e-9 and always.max() <= lo + 1.0 + 3.3
+    # 0 draws no extra number: the episodes are those of a config without the field
+    a = sample_random(8, scenario_for("flown", "random"), np.random.default_rng(9))
+    b = sample_random(8, scenario_for("flown", "random", low_floor_fraction=0.0), np.random.default_rng(9))
+    assert np.array_equal(a.goal_ned, b.goal_ned)
+    with pytest.raises(ValueError, match="low_floor_fraction"):
+        ScenarioConfig(low_floor_fraction=1.5)
+    # training worlds get it, evaluation worlds (validation, rescoring, tests) fly the uniform draw
+    cfg = TrainConfig(preset="flown-fast", geometry="flown", low_floor_fraction=0.25)
+    assert make_sim_config(cfg, 1).scenario.low_floor_fraction == 0.25
+    assert make_sim_config(cfg, 1, scenario_name="random").scenario.low_floor_fraction == 0.0
+
+
 def test_paper_geometry_is_the_default_and_draws_the_same_episodes():
     assert scenario_for("paper", "random") == ScenarioConfig(name="random")
     a = sample_random(8, ScenarioConfig(), np.random.default_rng(3))

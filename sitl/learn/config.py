@@ -17,8 +17,8 @@ from companion.spec import CAMERA_PRESETS, DEFAULT_TASK_SPEC, CameraSpec
 from sitl.cli_args import MAX_THREADS
 from sitl.learn.agent import METHODS, AgentConfig
 from sitl.sim.camera import StereoNoise
-from sitl.sim.config import (CIRCLE_RADIUS_M, GEOMETRIES, OBSTACLE_SCENE_DENSITY, TRAINING_SCENARIOS,
-                             RewardConfig, SimConfig, density_from_name, scenario_for)
+from sitl.sim.config import (CIRCLE_RADIUS_M, GEOMETRIES, LOW_FLOOR_BAND_M, OBSTACLE_SCENE_DENSITY,
+                             TRAINING_SCENARIOS, RewardConfig, SimConfig, density_from_name, scenario_for)
 from sitl.sim.dynamics import KinematicRandomization
 
 @dataclass(frozen=True)
@@ -57,6 +57,10 @@ class TrainConfig:
     geometry: str = _param("paper", "scene geometry: paper (6 m floor, circle at 10 m) or flown (altitudes "
                                     "1.5-15 m, circles 8-20 m at 2-15 m, 0.5 m start jitter; sitl.sim.config)")
     obstacle_fraction: float = _param(0.0, "mixed scenario: probability that an episode is an obstacles episode")
+    low_floor_fraction: float = _param(0.0, "flown geometry, training worlds only: share of random/obstacle episodes "
+                                            f"whose box floor is drawn within {LOW_FLOOR_BAND_M:g} m of the lowest altitude, so goals "
+                                            "near the ground come up more often (validation and tests fly the "
+                                            "uniform draw)")
     randomize_dynamics: bool = _param(False, "draw each UAV's velocity lag and acceleration limits per episode "
                                              "(sitl.sim.dynamics.KinematicRandomization)")
     yaw_jitter_deg: float = _param(45.0, "random scenario: initial heading error from the goal bearing, up to +-deg")
@@ -179,6 +183,9 @@ TRAIN_INT_RANGES = (
     ("seed", 0, 2**32 - 1), ("threads", 1, MAX_THREADS), ("vae_images", 1, 10_000_000), ("vae_epochs", 1, 100_000),
     ("teacher_bc_updates", 0, 10**9),
 )
+
+#: The recipe that trains the bundled models/policy.pt (models/README.md); the training benchmarks' default.
+BUNDLE_PRESET = "flown-fast"
 
 #: Each preset sets training and agent fields; explicit flags override it. The dataclass
 #: defaults are the fast preset's training values and the paper's agent values.
@@ -309,9 +316,11 @@ def make_sim_config(cfg: TrainConfig, num_worlds: int, record_paths: bool = Fals
         values["circle_radius_m"] = cfg.circle_radius_m  # the flown geometry draws the radius per episode
     if name == "obstacles":
         values["density"] = OBSTACLE_SCENE_DENSITY  # the obstacle scene's own spacing, as swarm_test flown flies it
+    training = scenario_name is None  # randomization trains robustness; evaluations fly the nominal vehicle
+    if training and cfg.low_floor_fraction > 0:
+        values["low_floor_fraction"] = cfg.low_floor_fraction
     scenario = scenario_for(cfg.geometry, name, **values)
     camera = training_camera(cfg)
-    training = scenario_name is None  # randomization trains robustness; evaluations fly the nominal vehicle
     randomization = KinematicRandomization() if cfg.randomize_dynamics and training else None
     return SimConfig(num_uavs=cfg.num_uavs, num_worlds=num_worlds, scenario=scenario, camera=camera,
                      dynamics_randomization=randomization,

@@ -78,7 +78,10 @@ class ScenarioConfig:
     ``box_floor_alt_m``); the circle's altitude and radius are drawn per episode uniformly in
     their ranges. ``start_jitter_m`` moves each random-scene start by a uniform offset of up to
     that much per axis (redrawn while it would bring two starts closer than ``min_separation_m``
-    or a start below ``lo``), as ``circle_jitter_m`` does for the circle.
+    or a start below ``lo``), as ``circle_jitter_m`` does for the circle. ``low_floor_fraction``
+    (training only; 0 in every evaluation) draws the floor instead within the lowest
+    ``LOW_FLOOR_BAND_M`` of its range in that share of episodes, so that goals near the ground,
+    ~3 % of a uniform draw in the medium scene, are practised more often.
 
     Mixed (training only): each episode is a circle episode with probability
     ``circle_fraction``, an obstacles one with probability ``obstacle_fraction``, else a
@@ -98,6 +101,7 @@ class ScenarioConfig:
     circle_fraction: float = 0.5
     altitude_range_m: tuple[float, float] | None = None  # random/obstacles: None = fixed floor box_floor_alt_m
     start_jitter_m: float = 0.0  # random/obstacles: per-axis start offset, up to +-m
+    low_floor_fraction: float = 0.0  # random/obstacles with altitude_range_m: P(floor in the lowest LOW_FLOOR_BAND_M)
     circle_alt_range_m: tuple[float, float] | None = None  # None: circle_alt_m
     circle_radius_range_m: tuple[float, float] | None = None  # None: circle_radius_m
     obstacle_density_per_100m2: float = 10.0  # ~1000 per hectare: a dense orchard or forest edge
@@ -122,6 +126,8 @@ class ScenarioConfig:
                 object.__setattr__(self, name, (float(lo), float(hi)))  # JSON round trips give lists
         if not 0.0 <= self.start_jitter_m <= 10.0:
             raise ValueError(f"start_jitter_m must be in [0, 10], got {self.start_jitter_m}")
+        if not 0.0 <= self.low_floor_fraction <= 1.0:
+            raise ValueError(f"low_floor_fraction must be in [0, 1], got {self.low_floor_fraction}")
         if not 0.0 <= self.obstacle_density_per_100m2 <= 100.0:
             raise ValueError(f"obstacle_density_per_100m2 must be in [0, 100], got {self.obstacle_density_per_100m2}")
         if not 0.0 <= self.obstacle_box_fraction <= 1.0:
@@ -143,6 +149,9 @@ FLOWN_ALTITUDE_RANGE_M = (1.5, 15.0)
 FLOWN_CIRCLE_ALT_RANGE_M = (2.0, 15.0)
 FLOWN_CIRCLE_RADIUS_RANGE_M = (8.0, 20.0)
 FLOWN_START_JITTER_M = 0.5
+#: ``ScenarioConfig.low_floor_fraction``: a low-floor episode's floor lies within this many metres
+#: above the lowest altitude (medium box 3.2 m tall: ~30 % of its goals then lie below 3 m).
+LOW_FLOOR_BAND_M = 1.0
 #: UAVs per cubic metre of the obstacle scene: sparser than the paper's ``large`` (0.04), so the
 #: 8 UAVs' lines are ~9 m long and cross the obstacles (flying straight, ~11 % of UAVs hit one).
 OBSTACLE_SCENE_DENSITY = 0.03

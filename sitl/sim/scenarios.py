@@ -15,7 +15,7 @@ import numpy as np
 from companion.frames import wrap_angle_rad
 from sitl.sim.collision import distance_to_obstacles_m
 from sitl.sim.config import (OBSTACLE_BOX_HALF_SIDE_M, OBSTACLE_BOX_HEIGHT_M, OBSTACLE_CYLINDER_HEIGHT_M,
-                             OBSTACLE_CYLINDER_RADIUS_M, ScenarioConfig)
+                             LOW_FLOOR_BAND_M, OBSTACLE_CYLINDER_RADIUS_M, ScenarioConfig)
 
 #: Test seeds (the final evaluation of a training run, ``swarm_test``) are ``EVAL_SEED_OFFSET + seed``;
 #: training seeds stay below it.
@@ -81,6 +81,9 @@ def box_floor_alt_m(num_uavs: int, config: ScenarioConfig, rng: np.random.Genera
     if lo + height > hi:
         raise ValueError(f"the random box of {num_uavs} UAVs at {config.density:g} UAV/m^3 is {height:.1f} m tall: "
                          f"it does not fit between {lo:g} and {hi:g} m above the ground")
+    # Only a positive fraction draws the extra number: every other run keeps its episodes exactly.
+    if config.low_floor_fraction > 0 and rng.uniform() < config.low_floor_fraction:
+        return float(rng.uniform(lo, min(lo + LOW_FLOOR_BAND_M, hi - height)))
     return float(rng.uniform(lo, hi - height))
 
 
