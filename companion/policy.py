@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import warnings
 import zipfile
 from collections.abc import Sequence
@@ -106,10 +107,22 @@ def build_metadata(camera: CameraSpec, action: ActionSpec, control_period_s: flo
 
 
 def save_policy(module, metadata: dict, path: str | Path) -> None:
-    """Script ``module`` (if it is not already TorchScript) and save it with its metadata."""
+    """Save ``module`` as TorchScript with its metadata, wrapped in the input check.
+
+    The wrapper (:class:`companion.checked_policy.ShapeCheckedPolicy`; a module that already has
+    one is unwrapped first, so the check always matches ``metadata``) refuses depth or state of
+    another shape than ``metadata`` declares with a message that names the expected shape, for
+    users who run the file with a bare ``torch.jit.load``. ``module`` may be a Python module or
+    TorchScript.
+    """
     import torch
 
-    _check_metadata(metadata, str(path))
+    from companion.checked_policy import ShapeCheckedPolicy, is_shape_checked
+
+    camera, _, _, _ = _check_metadata(metadata, str(path))
+    if is_shape_checked(module):  # a loaded file saved again: check against the metadata written now
+        module = module.policy
+    module = ShapeCheckedPolicy(module, camera.frames, camera.height, camera.width, len(STATE_NAMES))
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     with _QuietJitDeprecation():
         scripted = module if isinstance(module, torch.jit.ScriptModule) else torch.jit.script(module)
@@ -155,6 +168,17 @@ class LoadedPolicy:
             out = self.module(torch.from_numpy(np.ascontiguousarray(depth_m, dtype=np.float32)),
                               torch.from_numpy(np.ascontiguousarray(state, dtype=np.float32)))
         return out.numpy()
+
+
+def torchscript_error_line(err: BaseException) -> str:
+    """The line of a (TorchScript) exception that says why. The interpreter's message starts with
+    "The following operation failed ..." and a traceback, and ends with the raised error
+    (``builtins.ValueError: ...`` from the input check, ``RuntimeError: mat1 and mat2 ...``): that
+    last error's message, else the first line."""
+    lines = [line.strip() for line in str(err).strip().splitlines() if line.strip()]
+    raised = [line.split(": ", 1)[1] for line in lines
+              if re.match(r"^(builtins\.)?[A-Za-z_.]*(Error|Exception): ", line)]
+    return raised[-1] if raised else (lines[0] if lines else type(err).__name__)
 
 
 def _require(cond: bool, path: str, message: str) -> None:
@@ -346,9 +370,9 @@ def load_policy(path: str | Path, *, check_forward: bool = True,
         blank_state[0, 0] = 10.0
         try:
             out = policy.act(blank_depth, blank_state)
-        except Exception as err:  # TorchScript errors span many lines: keep the first
-            first_line = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-            raise PolicyFileError(f"{path}: forward(depth, state) failed on a blank observation ({first_line})") from err
+        except Exception as err:  # TorchScript errors span many lines: keep the one that says why
+            raise PolicyFileError(f"{path}: forward(depth, state) failed on a blank observation "
+                                  f"({torchscript_error_line(err)})") from err
         # Refuse a wrong shape here, by name: later it would only show as a hold blamed on "not finite".
         _require(out.shape == (1, 3), path, f"policy output has shape {list(out.shape)}, expected [1, 3]")
         _require(bool(np.all(np.isfinite(out))), path, "forward returned non-finite actions")

@@ -82,7 +82,7 @@ from companion.flight_modes import (
 from companion.inference import InferenceWorker
 from companion.observation import DepthFrameStack, build_state
 from companion.obstacle_distance import ObstacleDistancePublisher
-from companion.policy import LoadedPolicy
+from companion.policy import LoadedPolicy, torchscript_error_line
 from companion.recording import FlightRecorder
 from companion.sdnotify import SystemdNotifier
 from companion.spec import goal_problem
@@ -750,7 +750,7 @@ class Companion:
             return self._hold(info)
         raw, error, info["inference_s"] = answer
         if error is not None:  # a TorchScript runtime error must not take the loop down
-            info["hold"] = f"policy raised {type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"
+            info["hold"] = f"policy raised {type(error).__name__}: {torchscript_error_line(error)}"
             return self._hold(info)
         self.inference_s.append(info["inference_s"])
         info["policy"] = raw

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from companion.policy import FORMAT_VERSION, PolicyFileError, build_metadata, load_policy, save_policy
+from companion.policy import (FORMAT_VERSION, PolicyFileError, build_metadata, load_policy, save_policy,
+                             torchscript_error_line)
 from companion.spec import DEFAULT_ACTION_SPEC, CameraSpec
 from sitl.learn.agent import AgentConfig, SacAeAgent
 from sitl.learn.export import export_policy
@@ -47,6 +48,50 @@ def test_exported_policy_matches_the_agent_and_carries_metadata(agent, tmp_path)
     out = module(torch.from_numpy(depth), torch.from_numpy(state))
     assert out.dtype == torch.float32 and out.shape == (5, 3) and json.loads(extra["policy.json"])
     assert torch.all(out >= torch.tensor([0.0, -0.5, -0.5])) and torch.all(out <= torch.tensor([2.0, 0.5, 0.5]))
+
+
+def test_a_bare_torch_jit_load_user_gets_a_clear_error_for_a_wrong_input_shape(agent, tmp_path):
+    """The file checks its inputs against policy.json itself (companion.checked_policy), so someone who
+    runs it without this package learns the expected shape, not torch's 'mat1 and mat2 shapes ...'."""
+    path = tmp_path / "policy.pt"
+    export_policy(agent, path, 0.1, {"method": "sac_ae"}, onnx=False)
+    module = torch.jit.load(str(path))
+    state = torch.zeros(1, 6)
+    with pytest.raises(Exception, match=r"depth must be \[batch, 3, 16, 16\].*got \[1, 3, 20, 32\]"):
+        module(torch.zeros(1, 3, 20, 32), state)
+    with pytest.raises(Exception, match=r"depth must be \[batch, 3, 16, 16\]"):
+        module(torch.zeros(3, 16, 16), state)  # no batch axis
+    with pytest.raises(Exception, match=r"state must be \[batch, 6\] with depth's batch 2"):
+        module(torch.zeros(2, 3, 16, 16), state)
+    assert module(torch.zeros(2, 3, 16, 16), torch.zeros(2, 6)).shape == (2, 3)
+    # Saving a loaded file again does not wrap it twice; the actions stay the same.
+    resaved = tmp_path / "again.pt"
+    save_policy(module, load_policy(path).metadata, resaved)
+    assert "policy.policy" not in dict(torch.jit.load(str(resaved)).named_modules())
+    depth = torch.rand(4, 3, 16, 16) * 20
+    assert torch.equal(torch.jit.load(str(resaved))(depth, torch.ones(4, 6)), module(depth, torch.ones(4, 6)))
+    # A policy.json edited after saving (another camera) is refused at load, in the check's own words.
+    meta = load_policy(path).metadata
+    meta["depth"]["width"] = 24
+    edited = _write_raw(tmp_path / "edited.pt", meta, module)
+    with pytest.raises(PolicyFileError, match=r"blank observation \(depth must be \[batch, 3, 16, 16\]"):
+        load_policy(edited)
+    # save_policy wraps the check anew for the metadata it writes (here 16x24, which the network
+    # cannot take: its own error, at load).
+    save_policy(module, meta, tmp_path / "resaved24.pt")
+    with pytest.raises(PolicyFileError, match="mat1 and mat2"):
+        load_policy(tmp_path / "resaved24.pt")
+
+
+def test_torchscript_errors_are_cut_to_the_line_that_says_why():
+    """The companion's hold reason and load errors quote the raised error, not the interpreter's preamble."""
+    scripted = torch.jit.script(torch.nn.Sequential(torch.nn.Flatten(), torch.nn.Linear(4, 2)))
+    with pytest.raises(Exception) as caught:
+        scripted(torch.zeros(1, 5))
+    assert str(caught.value).startswith("The following operation failed")
+    assert torchscript_error_line(caught.value) == "mat1 and mat2 shapes cannot be multiplied (1x5 and 4x2)"
+    assert torchscript_error_line(ValueError("plain\nsecond line")) == "plain"
+    assert torchscript_error_line(RuntimeError("")) == "RuntimeError"
 
 
 def test_wrong_files_are_refused_with_a_reason(agent, tmp_path):
