@@ -53,6 +53,11 @@ def test_low_floor_fraction_oversamples_low_goals_in_training_worlds_only():
     assert np.array_equal(a.goal_ned, b.goal_ned)
     with pytest.raises(ValueError, match="low_floor_fraction"):
         ScenarioConfig(low_floor_fraction=1.5)
+    # the paper geometry's floor is fixed: asking for low floors there is an error, not a silent no-op
+    with pytest.raises(ValueError, match="needs altitude_range_m"):
+        scenario_for("paper", "random", low_floor_fraction=0.25)
+    with pytest.raises(ValueError, match="needs a geometry whose floor"):
+        TrainConfig(low_floor_fraction=0.25)
     # training worlds get it, evaluation worlds (validation, rescoring, tests) fly the uniform draw
     cfg = TrainConfig(preset="flown-fast", geometry="flown", low_floor_fraction=0.25)
     assert make_sim_config(cfg, 1).scenario.low_floor_fraction == 0.25

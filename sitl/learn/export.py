@@ -21,6 +21,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from companion.checked_policy import is_shape_checked
 from companion.onnx_policy import INPUT_DEPTH, INPUT_STATE, METADATA_KEY, OUTPUT_ACTION
 from companion.policy import PolicyFileError, build_metadata, load_policy, save_policy
 from companion.spec import DEFAULT_TASK_SPEC, STATE_DIM, TaskSpec
@@ -96,6 +97,9 @@ def export_onnx(torchscript_path: str | Path, onnx_path: str | Path) -> float:
     policy = load_policy(torchscript_path)
     cam = policy.camera
     example = (torch.full((1, cam.frames, cam.height, cam.width), cam.max_range_m), torch.zeros(1, STATE_DIM))
+    # The network without the TorchScript input check (companion/checked_policy.py): the ONNX
+    # graph declares its input shapes instead, and the exporter would otherwise have to trace the check.
+    module = policy.module.policy if is_shape_checked(policy.module) else policy.module
     buffer = io.BytesIO()
     with warnings.catch_warnings():
         # The TorchScript-based exporter is the one that takes a TorchScript module (the file we
@@ -104,7 +108,7 @@ def export_onnx(torchscript_path: str | Path, onnx_path: str | Path) -> float:
                         r"The feature will be removed"):  # the last: the legacy exporter's own logging helper
             warnings.filterwarnings("ignore", category=DeprecationWarning, message=message)
         warnings.filterwarnings("ignore", category=UserWarning, message=r"no signature found")
-        torch.onnx.export(policy.module, example, buffer, input_names=[INPUT_DEPTH, INPUT_STATE],
+        torch.onnx.export(module, example, buffer, input_names=[INPUT_DEPTH, INPUT_STATE],
                           output_names=[OUTPUT_ACTION], opset_version=ONNX_OPSET, dynamo=False,
                           dynamic_axes={INPUT_DEPTH: {0: "batch"}, INPUT_STATE: {0: "batch"},
                                         OUTPUT_ACTION: {0: "batch"}})

@@ -81,7 +81,7 @@ class ScenarioConfig:
     or a start below ``lo``), as ``circle_jitter_m`` does for the circle. ``low_floor_fraction``
     (training only; 0 in every evaluation) draws the floor instead within the lowest
     ``LOW_FLOOR_BAND_M`` of its range in that share of episodes, so that goals near the ground,
-    ~3 % of a uniform draw in the medium scene, are practised more often.
+    3.6 % of a uniform draw in the medium scene, are practised more often.
 
     Mixed (training only): each episode is a circle episode with probability
     ``circle_fraction``, an obstacles one with probability ``obstacle_fraction``, else a
@@ -128,6 +128,8 @@ class ScenarioConfig:
             raise ValueError(f"start_jitter_m must be in [0, 10], got {self.start_jitter_m}")
         if not 0.0 <= self.low_floor_fraction <= 1.0:
             raise ValueError(f"low_floor_fraction must be in [0, 1], got {self.low_floor_fraction}")
+        if self.low_floor_fraction > 0 and self.altitude_range_m is None:
+            raise ValueError("low_floor_fraction needs altitude_range_m (a floor drawn per episode); this box's floor is fixed")
         if not 0.0 <= self.obstacle_density_per_100m2 <= 100.0:
             raise ValueError(f"obstacle_density_per_100m2 must be in [0, 100], got {self.obstacle_density_per_100m2}")
         if not 0.0 <= self.obstacle_box_fraction <= 1.0:
