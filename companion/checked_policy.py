@@ -45,3 +45,8 @@ class ShapeCheckedPolicy(nn.Module):
 def is_shape_checked(module: nn.Module) -> bool:
     """Whether ``module`` (a Python or TorchScript module) is already a :class:`ShapeCheckedPolicy`."""
     return getattr(module, "original_name", type(module).__name__) == CHECKED_POLICY_NAME
+
+
+def unwrap_checked(module: nn.Module) -> nn.Module:
+    """The network inside a :class:`ShapeCheckedPolicy` (Python or TorchScript); any other module as it is."""
+    return module.policy if is_shape_checked(module) else module

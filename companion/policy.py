@@ -117,12 +117,11 @@ def save_policy(module, metadata: dict, path: str | Path) -> None:
     """
     import torch
 
-    from companion.checked_policy import ShapeCheckedPolicy, is_shape_checked
+    from companion.checked_policy import ShapeCheckedPolicy, unwrap_checked
 
     camera, _, _, _ = _check_metadata(metadata, str(path))
-    if is_shape_checked(module):  # a loaded file saved again: check against the metadata written now
-        module = module.policy
-    module = ShapeCheckedPolicy(module, camera.frames, camera.height, camera.width, len(STATE_NAMES))
+    # a loaded file saved again is unwrapped first: its check follows the metadata written now
+    module = ShapeCheckedPolicy(unwrap_checked(module), camera.frames, camera.height, camera.width, len(STATE_NAMES))
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     with _QuietJitDeprecation():
         scripted = module if isinstance(module, torch.jit.ScriptModule) else torch.jit.script(module)

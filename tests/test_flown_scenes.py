@@ -56,7 +56,7 @@ def test_low_floor_fraction_oversamples_low_goals_in_training_worlds_only():
     # the paper geometry's floor is fixed: asking for low floors there is an error, not a silent no-op
     with pytest.raises(ValueError, match="needs altitude_range_m"):
         scenario_for("paper", "random", low_floor_fraction=0.25)
-    with pytest.raises(ValueError, match="needs a geometry whose floor"):
+    with pytest.raises(ValueError, match="needs altitude_range_m"):
         TrainConfig(low_floor_fraction=0.25)
     # training worlds get it, evaluation worlds (validation, rescoring, tests) fly the uniform draw
     cfg = TrainConfig(preset="flown-fast", geometry="flown", low_floor_fraction=0.25)

@@ -132,12 +132,9 @@ class TrainConfig:
             raise ValueError(f"obstacle_fraction must be in [0, 1 - circle_fraction], got {self.obstacle_fraction}")
         if self.geometry not in GEOMETRIES:
             raise ValueError(f"unknown geometry {self.geometry!r}; choose one of {', '.join(GEOMETRIES)}")
-        if not 0.0 <= self.low_floor_fraction <= 1.0:  # checked here too, so a bad flag fails before the run starts
-            raise ValueError(f"low_floor_fraction must be in [0, 1], got {self.low_floor_fraction}")
-        if self.low_floor_fraction > 0 and scenario_for(self.geometry, "random").altitude_range_m is None:
-            # e.g. the paper geometry: its box floor is fixed at 6 m, there is no low floor to draw more often
-            raise ValueError(f"low_floor_fraction needs a geometry whose floor is drawn per episode (flown), "
-                             f"got geometry {self.geometry!r}")
+        # The scenario checks low_floor_fraction (its range, and a floor drawn per episode): here, so a
+        # bad flag fails before the run starts.
+        scenario_for(self.geometry, "random", low_floor_fraction=self.low_floor_fraction)
         if not math.isfinite(density_from_name(self.density)):
             raise ValueError(f"density must be a finite number of UAV/m^3, got {self.density!r}")
         # Integer ranges: the upper ends keep a typo from allocating (or promising) the impossible.

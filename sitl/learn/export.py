@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from companion.checked_policy import is_shape_checked
+from companion.checked_policy import unwrap_checked
 from companion.onnx_policy import INPUT_DEPTH, INPUT_STATE, METADATA_KEY, OUTPUT_ACTION
 from companion.policy import PolicyFileError, build_metadata, load_policy, save_policy
 from companion.spec import DEFAULT_TASK_SPEC, STATE_DIM, TaskSpec
@@ -99,7 +99,7 @@ def export_onnx(torchscript_path: str | Path, onnx_path: str | Path) -> float:
     example = (torch.full((1, cam.frames, cam.height, cam.width), cam.max_range_m), torch.zeros(1, STATE_DIM))
     # The network without the TorchScript input check (companion/checked_policy.py): the ONNX
     # graph declares its input shapes instead, and the exporter would otherwise have to trace the check.
-    module = policy.module.policy if is_shape_checked(policy.module) else policy.module
+    module = unwrap_checked(policy.module)
     buffer = io.BytesIO()
     with warnings.catch_warnings():
         # The TorchScript-based exporter is the one that takes a TorchScript module (the file we

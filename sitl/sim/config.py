@@ -129,7 +129,8 @@ class ScenarioConfig:
         if not 0.0 <= self.low_floor_fraction <= 1.0:
             raise ValueError(f"low_floor_fraction must be in [0, 1], got {self.low_floor_fraction}")
         if self.low_floor_fraction > 0 and self.altitude_range_m is None:
-            raise ValueError("low_floor_fraction needs altitude_range_m (a floor drawn per episode); this box's floor is fixed")
+            raise ValueError(f"low_floor_fraction needs altitude_range_m (a floor drawn per episode: the flown geometry); "
+                             f"this box's floor is fixed at {self.box_floor_alt_m:g} m")
         if not 0.0 <= self.obstacle_density_per_100m2 <= 100.0:
             raise ValueError(f"obstacle_density_per_100m2 must be in [0, 100], got {self.obstacle_density_per_100m2}")
         if not 0.0 <= self.obstacle_box_fraction <= 1.0:
