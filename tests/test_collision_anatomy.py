@@ -98,3 +98,31 @@ def test_a_flown_cell_is_flown_with_the_cameras_real_vertical_field_of_view(tmp_
     result = json.loads(out.read_text())
     assert "at 1.5-15 m" in result["scenario"] and result["uav_episodes"] == 48
     assert math.isclose(result["collisions"] / result["uav_episodes"], result["collision_uav_rate"])
+
+
+def test_timeouts_are_located_and_classified():
+    """Two UAVs flying straight across a 12 m circle, stopped after 3 s: both time out mid-way, still flying."""
+    settings = EvalSettings(scenario=ScenarioConfig(name="circle", circle_radius_m=12.0), num_uavs=2, episodes=4,
+                            max_episode_steps=30, record_paths=False)
+    result = analyse("straight", settings)
+    t = result["timeouts"]
+    assert result["collisions"] == 0 and t["timeouts"] == 8 == len(result["timeout_events"])
+    assert math.isclose(t["rate"], result["timeout_rate"])  # every timeout the env recorded, and nothing else
+    assert t["still_flying"]["count"] == 8 and t["stalled_near_goal"]["count"] == t["stalled_elsewhere"]["count"] == 0
+    for e in result["timeout_events"]:
+        # 3 s at up to 2 m/s from 24 m out: 4-6.5 m flown, all of it towards the goal; no obstacles here
+        assert 4.0 < e["moved_last_window_m"] <= 6.5 and math.isclose(e["progress_last_window_m"], e["moved_last_window_m"], abs_tol=0.05)
+        assert 17.5 < e["distance_to_goal_m"] < 20.5 and e["nearest_obstacle_m"] is None
+
+
+@pytest.mark.parametrize("moved, to_goal, kind", [(0.1, 1.0, "stalled_near_goal"), (0.1, 8.0, "stalled_elsewhere"),
+                                                  (0.6, 1.0, "still_flying"), (3.0, 15.0, "still_flying")])
+def test_timeout_kinds(moved, to_goal, kind):
+    from sitl.eval.collision_anatomy import summarize_timeouts, timeout_kind
+
+    event = {"moved_last_window_m": moved, "distance_to_goal_m": to_goal, "nearest_obstacle_m": None,
+             "altitude_m": 5.0, "progress_last_window_m": 0.0}
+    assert timeout_kind(event) == kind
+    summary = summarize_timeouts([event], 10)
+    assert summary[kind]["count"] == 1 and math.isclose(summary[kind]["rate"], 0.1)
+    assert math.isnan(summary[kind]["median_nearest_obstacle_m"])

@@ -1,4 +1,4 @@
-"""Anatomy of the UAV-UAV collisions a controller still has: when, and who could see whom.
+"""Anatomy of the UAV-UAV collisions a controller still has (when, and who could see whom), and of its timeouts.
 
 A forward depth camera sees only what is in its field of view. This tool flies the same
 test episodes as ``python -m sitl.swarm_test`` and, for every UAV that collides with
@@ -10,7 +10,13 @@ sees only its own camera; collisions the collider saw are the policy's to avoid.
     python -m sitl.collision_anatomy --scenario random --density medium --episodes 100
     python -m sitl.collision_anatomy --protocol flown --cell random-medium --episodes 100
 
-Prints a table and writes ``--json`` if given. Geometry test: the partner's centre inside
+A UAV that times out ends the episode neither arrived nor crashed. The tool also says where
+each one was at the time limit and whether it was still flying: *stalled near its goal* (within
+``NEAR_GOAL_M`` and it moved less than ``STALLED_M`` over the last ``STALL_WINDOW_S``),
+*stalled elsewhere*, or *still flying* (e.g. a detour too long for the time limit, or circling),
+with its distance to the goal and to the nearest static obstacle.
+
+Prints the tables and writes ``--json`` if given. Geometry test: the partner's centre inside
 the camera's horizontal and vertical field of view (heading frame, level camera as in the
 simulator) and within its range.
 """
@@ -27,7 +33,8 @@ from pathlib import Path
 import numpy as np
 
 from sitl.sim.config import CIRCLE_RADIUS_M, DENSITIES, ScenarioConfig, SimConfig
-from sitl.sim.env import COLLISION_UAV, SwarmEnv
+from sitl.sim.collision import DISABLED_BOX, DISABLED_CYLINDER, distance_to_obstacles_m
+from sitl.sim.env import COLLISION_UAV, TIMEOUT, SwarmEnv
 from sitl.eval.evaluate import EvalSettings, evaluate_method, sim_config_for
 from sitl.eval.flown import flown_cells
 from sitl.eval.methods import DEFAULT_POLICY, EvaluationError, resolve_method
@@ -38,6 +45,9 @@ from sitl.eval.visibility import camera_fov_rad, in_view
 KINEMATIC_FLOWN_CELLS = tuple(c.name for c in flown_cells(episodes=1, jsbsim=False))
 LOOKBACK_S = 1.0  # "could have seen it coming": in view at some step of this window before the collision
 TIME_BINS_S = (1.0, 2.0, 5.0)  # collision time since the episode start, for the table
+STALL_WINDOW_S = 5.0  # a timed-out UAV's displacement is measured over this last window...
+STALLED_M = 0.5  # ...and below this it counts as stalled (0.1 m/s on average)
+NEAR_GOAL_M = 3.0  # "near its goal": the arrival radius is 0.5 m, so a stall inside this is the last metres
 
 
 def moving_in_view(velocity_ned: np.ndarray, yaw_rad: float, hfov_rad: float, vfov_rad: float) -> bool:
@@ -107,17 +117,97 @@ class CollisionObserver:
                                 "collider_moved_in_view": heading_seen})
 
 
+class TimeoutObserver:
+    """Records where every UAV that times out is at the time limit, and how far it moved before it.
+
+    Keeps the positions of the last ``STALL_WINDOW_S`` (tagged with each world's episode, like
+    :class:`CollisionObserver`).
+    """
+
+    def __init__(self, config: SimConfig) -> None:
+        self.dt = config.control_period_s
+        self.recent: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=max(1, round(STALL_WINDOW_S / self.dt)))
+        self.events: list[dict] = []
+
+    def before_step(self, env: SwarmEnv) -> None:
+        self.recent.append((env.dynamics.pos_ned.copy(), env.world_episode.copy()))
+
+    def after_step(self, env: SwarmEnv, info: dict) -> None:
+        n = env.uavs_per_world
+        for r in np.flatnonzero(info["acting"] & (info["outcome"] == TIMEOUT)):
+            world, pos, goal = r // n, env.dynamics.pos_ned[r], env.goal_ned[r]
+            episode = int(env.world_episode[world])
+            window = [p[r] for p, episodes in self.recent if episodes[world] == episode]
+            others = np.delete(env.dynamics.pos_ned[world * n:(world + 1) * n], r % n, axis=0)
+            boxes, cylinders = env.boxes[world], env.cylinders[world]  # unused rows hold the DISABLED_* markers
+            obstacle = distance_to_obstacles_m(pos[None], boxes[~np.all(boxes == DISABLED_BOX, axis=1)],
+                                               cylinders[~np.all(cylinders == DISABLED_CYLINDER, axis=1)])[0]
+            self.events.append({
+                "episode": episode, "uav": int(r % n),
+                "distance_to_goal_m": round(float(np.linalg.norm(goal - pos)), 2),
+                "altitude_m": round(float(-pos[2]), 2), "goal_altitude_m": round(float(-goal[2]), 2),
+                "moved_last_window_m": round(float(np.linalg.norm(pos - window[0])), 2),
+                # closer to the goal than at the window's start by (negative: flying away from it)
+                "progress_last_window_m": round(float(np.linalg.norm(goal - window[0]) - np.linalg.norm(goal - pos)), 2),
+                "nearest_obstacle_m": round(float(obstacle), 2) if math.isfinite(obstacle) else None,
+                "nearest_uav_m": round(float(np.linalg.norm(others - pos, axis=1).min()), 2) if len(others) else None})
+
+
+def timeout_kind(event: dict) -> str:
+    """``stalled_near_goal``, ``stalled_elsewhere`` or ``still_flying`` (module doc)."""
+    if event["moved_last_window_m"] >= STALLED_M:
+        return "still_flying"
+    return "stalled_near_goal" if event["distance_to_goal_m"] < NEAR_GOAL_M else "stalled_elsewhere"
+
+
+def summarize_timeouts(events: list[dict], uav_episodes: int) -> dict:
+    """Per kind: count, rate per UAV-episode and medians of distance to goal and to the nearest obstacle."""
+    out: dict = {"timeouts": len(events), "rate": len(events) / uav_episodes}
+    for kind in ("stalled_near_goal", "stalled_elsewhere", "still_flying"):
+        picked = [e for e in events if timeout_kind(e) == kind]
+        out[kind] = {"count": len(picked), "rate": len(picked) / uav_episodes,
+                     **{f"median_{key}": _median(picked, key) for key in
+                        ("distance_to_goal_m", "nearest_obstacle_m", "altitude_m", "progress_last_window_m")}}
+    return out
+
+
+def _median(events: list[dict], key: str) -> float:
+    """Median of ``key`` over the events that have it (``None``: no obstacle in the scene); NaN if none."""
+    values = [e[key] for e in events if e[key] is not None]
+    return float(np.median(values)) if values else float("nan")
+
+
+class _Observers:
+    """Calls several step observers in turn (``evaluate_method`` takes one)."""
+
+    def __init__(self, *observers) -> None:
+        self.observers = observers
+
+    def before_step(self, env: SwarmEnv) -> None:
+        for o in self.observers:
+            o.before_step(env)
+
+    def after_step(self, env: SwarmEnv, info: dict) -> None:
+        for o in self.observers:
+            o.after_step(env, info)
+
+
 def analyse(policy: str, settings: EvalSettings, progress: bool = False) -> dict:
-    """Fly ``settings.episodes`` episodes (as ``swarm_test`` does) and classify every UAV-UAV collision."""
+    """Fly ``settings.episodes`` episodes (as ``swarm_test`` does); classify every UAV-UAV collision and timeout."""
     method = resolve_method(policy)
-    observer = CollisionObserver(sim_config_for(method, settings, 1))
-    result = evaluate_method(method, settings, progress=progress, desc="collision anatomy", observer=observer)
+    config = sim_config_for(method, settings, 1)
+    collisions, timeouts = CollisionObserver(config), TimeoutObserver(config)
+    result = evaluate_method(method, settings, progress=progress, desc="collision anatomy",
+                             observer=_Observers(collisions, timeouts))
     uav_episodes = settings.episodes * settings.num_uavs
-    events = sorted(observer.events, key=lambda e: (e["episode"], e["time_s"], e["uav"]))
+    events = sorted(collisions.events, key=lambda e: (e["episode"], e["time_s"], e["uav"]))
+    timed_out = sorted(timeouts.events, key=lambda e: (e["episode"], e["uav"]))
     return {"policy": policy, "scenario": settings.describe(), "uav_episodes": uav_episodes,
             "lookback_s": LOOKBACK_S, "collisions": len(events),
             "collision_uav_rate": result.summary["collision_uav_rate"], "events": events,
-            "summary": summarize_events(events, uav_episodes)}
+            "summary": summarize_events(events, uav_episodes),
+            "timeout_rate": result.summary["timeout_rate"], "timeout_events": timed_out,
+            "timeouts": summarize_timeouts(timed_out, uav_episodes)}
 
 
 def summarize_events(events: list[dict], uav_episodes: int) -> dict:
@@ -159,6 +249,18 @@ def format_table(result: dict) -> str:
     lines.append(f"median speed at the collision: {s['median_speed_when_saw_m_s']:.2f} m/s when the collider had "
                  f"the partner in view, {s['median_speed_when_did_not_see_m_s']:.2f} m/s when not; median closing "
                  f"speed {s['median_closing_speed_m_s']:.2f} m/s")
+    t = result["timeouts"]
+    lines += ["", f"timeouts: {t['timeouts']} UAVs ({t['rate']:.3f} per UAV-episode)",
+              "| at the time limit | UAVs | per UAV-episode | median distance to goal (m) | "
+              "median nearest obstacle (m) | median altitude (m) | median progress to goal, last window (m) |",
+              "| --- | --- | --- | --- | --- | --- | --- |"]
+    names = {"stalled_near_goal": f"stalled (< {STALLED_M:g} m in the last {STALL_WINDOW_S:g} s) within {NEAR_GOAL_M:g} m of its goal",
+             "stalled_elsewhere": "stalled farther from its goal", "still_flying": "still flying"}
+    for kind, name in names.items():
+        k = t[kind]
+        lines.append(f"| {name} | {k['count']} | {k['rate']:.3f} | {k['median_distance_to_goal_m']:.2f} | "
+                     f"{k['median_nearest_obstacle_m']:.2f} | {k['median_altitude_m']:.2f} | "
+                     f"{k['median_progress_last_window_m']:.2f} |")
     return "\n".join(lines)
 
 
