@@ -126,3 +126,15 @@ def test_timeout_kinds(moved, to_goal, kind):
     summary = summarize_timeouts([event], 10)
     assert summary[kind]["count"] == 1 and math.isclose(summary[kind]["rate"], 0.1)
     assert math.isnan(summary[kind]["median_nearest_obstacle_m"])
+
+
+def test_obstacle_clearance_is_for_the_obstacle_cell_only(capsys):
+    for argv in (["--obstacle-clearance", "3"], ["--protocol", "flown", "--cell", "random-medium", "--obstacle-clearance", "3"],
+                 ["--protocol", "flown", "--cell", "obstacles", "--obstacle-clearance", "0.1"]):
+        with pytest.raises(SystemExit) as exit_info:
+            main(argv)
+        assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert "needs --protocol flown --cell obstacles" in err and "obstacle_clearance_m must be in [0.5, 100]" in err
+    assert main(["--policy", "straight", "--protocol", "flown", "--cell", "obstacles", "--episodes", "1",
+                 "--obstacle-clearance", "3"]) == 0

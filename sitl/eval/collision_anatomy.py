@@ -24,6 +24,7 @@ simulator) and within its range.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -278,7 +279,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--n", type=int, default=8, help="UAVs per episode")
     parser.add_argument("--episodes", type=int, default=100, help="episodes")
     parser.add_argument("--seed", type=int, default=0, help="evaluation seed (episodes of 1,000,000 + seed)")
-    parser.add_argument("--json", type=Path, help="write the result with every collision here")
+    parser.add_argument("--obstacle-clearance", type=float, metavar="M",
+                        help="with --cell obstacles: keep obstacles M m from every start and goal instead of the "
+                             f"scene's {ScenarioConfig.obstacle_clearance_m:g} m (does a pole beside the goal stall it?)")
+    parser.add_argument("--json", type=Path, help="write the result with every collision and timeout here")
     args = parser.parse_args(argv)
     if args.episodes < 1 or args.n < 2:
         parser.error("--episodes must be at least 1 and --n at least 2")
@@ -287,8 +291,16 @@ def main(argv: list[str] | None = None) -> int:
                    if any(a == flag or a.startswith(flag + "=") for a in given)]
     if args.protocol == "flown" and paper_scene:  # the cell fixes the scene: a flag that would be ignored is refused
         parser.error(f"{', '.join(paper_scene)}: a paper-protocol scene setting; with --protocol flown choose a --cell")
+    if args.obstacle_clearance is not None and (args.protocol != "flown" or args.cell != "obstacles"):
+        parser.error("--obstacle-clearance needs --protocol flown --cell obstacles")
     if args.protocol == "flown":
         settings = next(c.settings for c in flown_cells(args.episodes, args.seed, jsbsim=False) if c.name == args.cell)
+        if args.obstacle_clearance is not None:
+            try:
+                scenario = dataclasses.replace(settings.scenario, obstacle_clearance_m=args.obstacle_clearance)
+            except ValueError as err:
+                parser.error(f"--obstacle-clearance: {err}")
+            settings = dataclasses.replace(settings, scenario=scenario)
     else:
         scenario = ScenarioConfig(name=args.scenario, density=DENSITIES[args.density], circle_radius_m=args.radius)
         settings = EvalSettings(scenario=scenario, num_uavs=args.n, episodes=args.episodes, seed=args.seed,
