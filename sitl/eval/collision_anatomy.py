@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from sitl.sim.config import CIRCLE_RADIUS_M, DENSITIES, ScenarioConfig, SimConfig
-from sitl.sim.collision import DISABLED_BOX, DISABLED_CYLINDER, distance_to_obstacles_m
+from sitl.sim.collision import distance_to_obstacles_m
 from sitl.sim.env import COLLISION_UAV, TIMEOUT, SwarmEnv
 from sitl.eval.evaluate import EvalSettings, evaluate_method, sim_config_for
 from sitl.eval.flown import flown_cells
@@ -140,9 +140,9 @@ class TimeoutObserver:
             episode = int(env.world_episode[world])
             window = [p[r] for p, episodes in self.recent if episodes[world] == episode]
             others = np.delete(env.dynamics.pos_ned[world * n:(world + 1) * n], r % n, axis=0)
-            boxes, cylinders = env.boxes[world], env.cylinders[world]  # unused rows hold the DISABLED_* markers
-            obstacle = distance_to_obstacles_m(pos[None], boxes[~np.all(boxes == DISABLED_BOX, axis=1)],
-                                               cylinders[~np.all(cylinders == DISABLED_CYLINDER, axis=1)])[0]
+            # Padding rows lie 1e6 m away, so they never win the minimum where an obstacle stands.
+            obstacle = (distance_to_obstacles_m(pos[None], env.boxes[world], env.cylinders[world])[0]
+                        if env.world_has_obstacles[world] else None)
             self.events.append({
                 "episode": episode, "uav": int(r % n),
                 "distance_to_goal_m": round(float(np.linalg.norm(goal - pos)), 2),
@@ -150,7 +150,7 @@ class TimeoutObserver:
                 "moved_last_window_m": round(float(np.linalg.norm(pos - window[0])), 2),
                 # closer to the goal than at the window's start by (negative: flying away from it)
                 "progress_last_window_m": round(float(np.linalg.norm(goal - window[0]) - np.linalg.norm(goal - pos)), 2),
-                "nearest_obstacle_m": round(float(obstacle), 2) if math.isfinite(obstacle) else None,
+                "nearest_obstacle_m": None if obstacle is None else round(float(obstacle), 2),
                 "nearest_uav_m": round(float(np.linalg.norm(others - pos, axis=1).min()), 2) if len(others) else None})
 
 
