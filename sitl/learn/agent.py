@@ -28,6 +28,7 @@ from torch import nn
 
 from companion.spec import ActionSpec, CameraSpec
 from sitl.learn.networks import STATE_FEATURES, Actor, Critic, Decoder, DepthNormalizer, Encoder, StateFeatures, weight_init
+from sitl.learn.privileged import PRIVILEGED_DIM
 
 METHODS = ("sac_ae", "cnn", "drq", "vae")
 
@@ -59,6 +60,10 @@ class AgentConfig:
     decoder_update_freq: int = field(default=1, metadata={"help": "reference train.py"})
     n_step: int = field(default=1, metadata={"help": "n-step returns (1: the paper's one-step SAC target)"})
     drq_pad: int = field(default=2, metadata={"help": "drq: random shift of up to this many pixels"})
+    privileged_critic: bool = field(default=False, metadata={
+        "help": "asymmetric actor-critic (not in the paper): the critic also sees the true positions and velocities "
+                "of the 3 nearest UAVs, the nearest obstacle point and the altitude (sitl.learn.privileged); "
+                "the actor and the policy file are unchanged"})
 
 
     def __post_init__(self) -> None:
@@ -130,7 +135,10 @@ class SacAeAgent(nn.Module):
         else:
             critic_encoder = Encoder(frames, h, w, config.latent_dim, config.num_filters)
             actor_encoder = Encoder(frames, h, w, config.latent_dim, config.num_filters)
-        self.critic = Critic(critic_encoder, STATE_FEATURES, len(action_spec.low), config.hidden_dim)
+        #: width of the critic's privileged input (0: the paper's critic, which sees what the actor sees)
+        self.privileged_dim = PRIVILEGED_DIM if config.privileged_critic else 0
+        self.critic = Critic(critic_encoder, STATE_FEATURES + self.privileged_dim, len(action_spec.low),
+                             config.hidden_dim)
         self.actor = Actor(actor_encoder, STATE_FEATURES, low, high, config.hidden_dim)
         for net in (self.critic, self.actor):
             for name, child in net.named_children():
@@ -185,17 +193,30 @@ class SacAeAgent(nn.Module):
         return np.clip((action - mid) / half, -1.0, 1.0)
 
     # ------------------------------------------------------------------ updates
-    def update_critic(self, pixels, state, action, reward, next_pixels, next_state, discount) -> dict:
+    def critic_state(self, state: torch.Tensor, privileged: torch.Tensor | None) -> torch.Tensor:
+        """The critic's state input: the actor's state features, then the privileged ones where the
+        critic has them (``privileged_critic``)."""
+        if not self.privileged_dim:
+            return state
+        if privileged is None:
+            raise ValueError("this agent's critic is privileged: the batch must carry 'privileged' and "
+                             "'next_privileged' (sitl.learn.privileged)")
+        return torch.cat([state, privileged], dim=1)
+
+    def update_critic(self, pixels, state, action, reward, next_pixels, next_state, discount,
+                      privileged=None, next_privileged=None) -> dict:
         """Eqs. 5-6: regress both Q-functions on the soft Bellman target of the target critic.
 
         ``discount`` is gamma (gamma^n for n-step returns), 0 after a terminal step.
+        ``privileged``/``next_privileged``: the critic's extra inputs (asymmetric critic only).
         """
         with torch.no_grad():
             next_action, next_log_prob, _ = self.actor.sample(next_pixels, next_state)
-            target_q1, target_q2 = self.critic_target(next_pixels, next_state, next_action)
+            target_q1, target_q2 = self.critic_target(next_pixels, self.critic_state(next_state, next_privileged),
+                                                      next_action)
             target_v = torch.min(target_q1, target_q2) - self.alpha.detach() * next_log_prob
             target_q = reward + discount * target_v
-        q1, q2 = self.critic(pixels, state, action)
+        q1, q2 = self.critic(pixels, self.critic_state(state, privileged), action)
         loss = F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q)
         self.critic_optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -203,26 +224,28 @@ class SacAeAgent(nn.Module):
         return {"losses/critic": loss.item(), "values/q": q1.mean().item()}
 
     def update_actor_and_alpha(self, pixels, state, teacher_action=None, teacher_valid=None,
-                               bc_weight: float = 0.0) -> dict:
+                               bc_weight: float = 0.0, privileged=None) -> dict:
         """Eq. 7 with the convolutions detached; then the temperature towards the target entropy.
 
         ``bc_weight`` > 0 adds a behaviour-cloning term (teacher-guided SAC+AE, not in the paper):
         the squared distance of the actor's mean action ``tanh(mu)`` from the teacher's unit
         action where ``teacher_valid``, scaled by ``bc_weight`` times the batch's mean |Q| (at least 1)
         so that its pull keeps its proportion to eq. 7's as the values grow (as in TD3+BC, Fujimoto &
-        Gu 2021) and still pulls while the critic knows nothing yet.
+        Gu 2021) and still pulls while the critic knows nothing yet. ``privileged``: the critic's
+        extra input (asymmetric critic only; the actor never sees it).
         """
+        critic_state = self.critic_state(state, privileged)
         if self.config.method == "vae":
             latent = self.actor.encoder(pixels)
             action, log_prob, log_std = self.actor.sample_from_latent(latent, state)
-            q1, q2 = self.critic(pixels, state, action, detach_encoder=True)
+            q1, q2 = self.critic(pixels, critic_state, action, detach_encoder=True)
         else:
             # The actor's convolutions are the critic's: compute them once, without gradient.
             with torch.no_grad():
                 features = self.critic.encoder.conv_features(pixels)
             latent = self.actor.encoder.head(features)
             action, log_prob, log_std = self.actor.sample_from_latent(latent, state)
-            q1, q2 = self.critic.q_from_latent(self.critic.encoder.head(features).detach(), state, action)
+            q1, q2 = self.critic.q_from_latent(self.critic.encoder.head(features).detach(), critic_state, action)
         q = torch.min(q1, q2)
         actor_loss = (self.alpha.detach() * log_prob - q).mean()
         info = {}
@@ -276,10 +299,10 @@ class SacAeAgent(nn.Module):
         if cfg.method == "drq":
             pixels, next_pixels = random_shift(pixels, cfg.drq_pad), random_shift(next_pixels, cfg.drq_pad)
         info = self.update_critic(pixels, state, batch["action"], batch["reward"], next_pixels, next_state,
-                                  batch["discount"])
+                                  batch["discount"], batch.get("privileged"), batch.get("next_privileged"))
         if self.updates % cfg.actor_update_freq == 0:
             info |= self.update_actor_and_alpha(pixels, state, batch.get("teacher_action"), batch.get("teacher_valid"),
-                                                bc_weight)
+                                                bc_weight, batch.get("privileged"))
         if self.updates % cfg.critic_target_update_freq == 0:
             self.soft_update_targets()
         if self.decoder is not None and self.updates % cfg.decoder_update_freq == 0:

@@ -23,7 +23,9 @@ class FrameReplayBuffer:
     """Transitions of many agents sharing one policy (centralised training, paper Alg. 1)."""
 
     def __init__(self, capacity: int, num_agents: int, frames: int, height: int, width: int, state_dim: int,
-                 action_dim: int, seed: int = 0) -> None:
+                 action_dim: int, seed: int = 0, privileged_dim: int = 0) -> None:
+        """``privileged_dim`` > 0: every transition also keeps the critic's privileged input for its
+        observation and its next one (asymmetric critic, :mod:`sitl.learn.privileged`)."""
         self.capacity = capacity
         self.frames_per_obs = frames
         self.frame_capacity = 2 * capacity + 8 * num_agents
@@ -37,6 +39,8 @@ class FrameReplayBuffer:
         # A privileged teacher's action in [-1, 1] where one was given (teacher-guided training), else invalid.
         self.teacher_action = np.zeros((capacity, action_dim), dtype=np.float32)
         self.teacher_valid = np.zeros((capacity, 1), dtype=np.float32)
+        self.privileged = np.zeros((capacity, privileged_dim), dtype=np.float32)
+        self.next_privileged = np.zeros((capacity, privileged_dim), dtype=np.float32)
         # Links to the same agent's next transition, for n-step returns. A link holds the
         # stamp (insertion count) of its target so that an overwritten row is not followed.
         self.stamp = np.full(capacity, -1, dtype=np.int64)
@@ -54,7 +58,7 @@ class FrameReplayBuffer:
     @property
     def nbytes(self) -> int:
         arrays = (self.frame_store, self.frame_index, self.state, self.next_state, self.action, self.reward, self.not_done,
-                  self.teacher_action, self.teacher_valid)
+                  self.teacher_action, self.teacher_valid, self.privileged, self.next_privileged)
         return sum(a.nbytes for a in arrays)
 
     def _store_frames(self, frames: np.ndarray) -> np.ndarray:
@@ -75,13 +79,16 @@ class FrameReplayBuffer:
 
     def add(self, agents: np.ndarray, state: np.ndarray, action: np.ndarray, reward: np.ndarray,
             next_frames: np.ndarray, next_state: np.ndarray, terminated: np.ndarray,
-            teacher_action: np.ndarray | None = None, teacher_valid: np.ndarray | None = None) -> None:
+            teacher_action: np.ndarray | None = None, teacher_valid: np.ndarray | None = None,
+            privileged: np.ndarray | None = None, next_privileged: np.ndarray | None = None) -> None:
         """Store one step of the agents in ``agents`` (all arrays have one row per agent listed).
 
         ``terminated`` means the episode truly ended (arrival or collision): no bootstrap.
         A time-out is not terminal (its next state is still worth something).
         ``teacher_action``: a teacher's action in [-1, 1] for the same observation, where
         ``teacher_valid`` (default: everywhere it is given; nowhere without it).
+        ``privileged``/``next_privileged``: the critic's extra input before and after the step
+        (required when the buffer was built with ``privileged_dim`` > 0).
         """
         count = len(agents)
         if count == 0:
@@ -100,6 +107,11 @@ class FrameReplayBuffer:
         else:
             self.teacher_action[rows] = teacher_action
             self.teacher_valid[rows, 0] = 1.0 if teacher_valid is None else teacher_valid.astype(np.float32)
+        if self.privileged.shape[1]:
+            if privileged is None or next_privileged is None:
+                raise ValueError("this buffer keeps privileged inputs: add() needs privileged and next_privileged")
+            self.privileged[rows] = privileged
+            self.next_privileged[rows] = next_privileged
         self.agent_stack[agents] = np.concatenate([self.agent_stack[agents, 1:], new_frames[:, None]], axis=1)
         stamps = self._inserted + np.arange(count)
         self.stamp[rows] = stamps
@@ -152,13 +164,15 @@ class FrameReplayBuffer:
             "not_done": to(self.not_done[last]),
             "discount": to(discount[:, None]),
         }
+        if self.privileged.shape[1]:
+            batch |= {"privileged": to(self.privileged[rows]), "next_privileged": to(self.next_privileged[last])}
         if with_teacher:
             batch |= {"teacher_action": to(self.teacher_action[rows]), "teacher_valid": to(self.teacher_valid[rows])}
         return batch
 
     #: Arrays with one row per transition; rows 0 .. size - 1 are the filled ones (rows fill in order).
     _ROW_ARRAYS = ("frame_index", "state", "next_state", "action", "reward", "not_done", "stamp", "successor",
-                   "successor_stamp", "teacher_action", "teacher_valid")
+                   "successor_stamp", "teacher_action", "teacher_valid", "privileged", "next_privileged")
 
     def state_dict(self) -> dict:
         """Everything needed to resume, with only the *filled* part of the preallocated arrays.

@@ -28,6 +28,7 @@ from sitl.learn.agent import AgentConfig, SacAeAgent
 from sitl.learn.buffer import FrameReplayBuffer
 from sitl.learn.config import TrainConfig, evaluation_scenarios, make_sim_config
 from sitl.learn.export import export_policy
+from sitl.learn.privileged import PRIVILEGED_NEIGHBOURS, env_privileged_features
 from sitl.learn.progress import Progress
 from sitl.sim.config import SimConfig
 from sitl.sim.env import SwarmEnv
@@ -186,11 +187,11 @@ def make_env(cfg: TrainConfig) -> SwarmEnv:
     return SwarmEnv(make_sim_config(cfg, cfg.num_worlds), seed=cfg.seed)
 
 
-def make_buffer(cfg: TrainConfig, env: SwarmEnv) -> FrameReplayBuffer:
-    """The replay buffer for ``env``'s UAVs and camera."""
+def make_buffer(cfg: TrainConfig, env: SwarmEnv, privileged_dim: int = 0) -> FrameReplayBuffer:
+    """The replay buffer for ``env``'s UAVs and camera (``privileged_dim``: an asymmetric critic's extra input)."""
     cam = env.config.camera
     return FrameReplayBuffer(cfg.replay_capacity, env.num_agents, cam.frames, cam.height, cam.width,
-                             STATE_DIM, DEFAULT_ACTION_SPEC.dim, seed=cfg.seed)
+                             STATE_DIM, DEFAULT_ACTION_SPEC.dim, seed=cfg.seed, privileged_dim=privileged_dim)
 
 
 def make_trainer(cfg: TrainConfig, agent_cfg: AgentConfig, run_dir: Path, resume: bool = False) -> "Trainer":
@@ -206,7 +207,7 @@ def make_trainer(cfg: TrainConfig, agent_cfg: AgentConfig, run_dir: Path, resume
         vae_encoder = make_vae_encoder(env.config, cfg.seed, cfg.vae_images, cfg.vae_epochs, cfg.vae_policy,
                                        log=Trainer.log)
     agent = make_agent(agent_cfg, env.config, cfg.device, vae_encoder)
-    return Trainer(cfg, agent_cfg, run_dir, env, agent, make_buffer(cfg, env), resume=resume)
+    return Trainer(cfg, agent_cfg, run_dir, env, agent, make_buffer(cfg, env, agent.privileged_dim), resume=resume)
 
 
 class Trainer:
@@ -460,9 +461,11 @@ class Trainer:
                 action = agent.act(obs.depth, obs.state, explore=True)
             state = obs.state
             teacher_action, teacher_valid = self.teacher_labels(rows)  # for the observation acted on
+            privileged = env_privileged_features(env)[rows] if agent.privileged_dim else None
             obs, reward, terminated, truncated, info = env.step(action)
+            next_privileged = env_privileged_features(env)[rows] if agent.privileged_dim else None
             buffer.add(rows, state[rows], agent.to_unit_action(action[rows]), reward[rows], obs.depth[rows, -1],
-                       obs.state[rows], terminated[rows], teacher_action, teacher_valid)
+                       obs.state[rows], terminated[rows], teacher_action, teacher_valid, privileged, next_privileged)
             returns += reward
             k["env_steps"] += 1
             k["transitions"] += len(rows)
@@ -566,6 +569,9 @@ class Trainer:
             "mount_pitch_jitter_deg": cfg.mount_pitch_jitter_deg, "avoid_counts_ground": cfg.avoid_counts_ground,
             "collision_reward": cfg.collision_reward, "uav_collision_extra_reward": cfg.uav_collision_extra_reward,
         }
+        if self.agent_cfg.privileged_critic:  # asymmetric actor-critic: not the paper's critic
+            provenance["privileged_critic"] = {"neighbours": PRIVILEGED_NEIGHBOURS, "obstacle_point": True,
+                                               "altitude": True, "module": "sitl.learn.privileged"}
         if cfg.teacher_bc_weight > 0:  # teacher-guided SAC+AE: not the paper's method alone
             provenance["teacher"] = {"kind": "orca (privileged)", "bc_weight": cfg.teacher_bc_weight,
                                      "bc_updates": cfg.teacher_bc_updates}
