@@ -129,7 +129,9 @@ class FrameReplayBuffer:
                with_teacher: bool = False) -> dict[str, torch.Tensor]:
         """A uniform batch; depth comes back as float32 metres [B, k, H, W].
 
-        ``with_teacher``: the batch also carries ``teacher_action`` and ``teacher_valid``.
+        ``with_teacher``: the batch also carries ``teacher_action`` and ``teacher_valid``. A buffer
+        with privileged inputs adds ``privileged`` (of the observation) and ``next_privileged`` (of
+        the observation the n-step target bootstraps from).
 
         With ``n_step > 1`` each transition is extended along its agent's episode by up to
         ``n_step - 1`` further transitions: ``reward`` is the discounted sum and
