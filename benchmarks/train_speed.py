@@ -76,13 +76,16 @@ def update_rate(agent: SacAeAgent, seconds: float, warmup_updates: int = 3) -> f
     cam = agent.camera
     height, width = cam.height, cam.width
     action_dim = DEFAULT_ACTION_SPEC.dim
-    buf = FrameReplayBuffer(4096, 64, cam.frames, height, width, STATE_DIM, action_dim)
+    extra = agent.privileged_dim  # an asymmetric critic's input (--privileged-critic), else 0
+    buf = FrameReplayBuffer(4096, 64, cam.frames, height, width, STATE_DIM, action_dim, privileged_dim=extra)
     rng = np.random.default_rng(0)
     agents = np.arange(64)
     buf.start_episodes(agents, rng.uniform(0, 20, (64, height, width)))
     for _ in range(40):
+        privileged = {"privileged": rng.normal(size=(64, extra)), "next_privileged": rng.normal(size=(64, extra))}
         buf.add(agents, rng.normal(size=(64, STATE_DIM)), rng.uniform(-1, 1, (64, action_dim)), rng.normal(size=64),
-                rng.uniform(0, 20, (64, height, width)), rng.normal(size=(64, STATE_DIM)), np.zeros(64, bool))
+                rng.uniform(0, 20, (64, height, width)), rng.normal(size=(64, STATE_DIM)), np.zeros(64, bool),
+                **(privileged if extra else {}))
     for _ in range(warmup_updates):
         agent.update(buf.sample(128, agent.device))
     count, started = 0, time.perf_counter()
