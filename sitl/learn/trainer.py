@@ -312,7 +312,7 @@ class Trainer:
                 self.agent.restore(ckpt["agent"])
         except (RuntimeError, KeyError, ValueError, TypeError) as err:
             raise ValueError(f"--init-from {path}: its networks do not match this run's agent settings "
-                             f"(method, hidden_dim, image_size, ...): {str(err)[:300]}") from None
+                             f"(method, hidden_dim, image_size, privileged_critic, ...): {str(err)[:300]}") from None
         self.agent.apply_learning_rates()
         self.initial_stage = snapshot_counters(path) if is_snapshot else \
             add_counters(ckpt["counters"], ckpt.get("initial_stage", {}))  # that run may itself be a later stage
