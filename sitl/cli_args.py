@@ -67,6 +67,20 @@ def int_range(low: int, high: int | None = None):
     return parse
 
 
+def int_list(low: int, high: int | None = None, allow_empty: bool = False):
+    """A parser of comma-separated integers in ``low..high`` (``""`` is ``[]`` only with ``allow_empty``)."""
+    def parse(text: str) -> list[int]:
+        try:
+            values = [int(v) for v in text.split(",") if v.strip()]
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+        if (not values and not allow_empty) or any(v < low or (high is not None and v > high) for v in values):
+            limit = f"of at least {low}" if high is None else f"in {low}..{high}"
+            raise argparse.ArgumentTypeError(f"expected integers {limit}, got {text!r}")
+        return values
+    return parse
+
+
 def integer(text: str) -> int:
     """Any integer (ranges are checked where the value is used)."""
     try:

@@ -45,6 +45,7 @@ from sitl.cli_args import (
     MAX_THREADS,
     MAX_VEHICLES,
     float_range,
+    int_list,
     int_range,
     output_dir,
     output_file_in_new_dir,
@@ -279,16 +280,6 @@ def run_single(args: argparse.Namespace) -> int:
     return 0
 
 
-def _int_list(text: str) -> list[int]:
-    try:
-        values = [int(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
-    if not values or min(values) < 1 or max(values) > MAX_VEHICLES:
-        raise argparse.ArgumentTypeError(f"expected integers in 1..{MAX_VEHICLES}, got {text!r}")
-    return values
-
-
 def _density_list(text: str) -> list[str]:
     names = [v.strip() for v in text.split(",") if v.strip()]
     for name in names:
@@ -311,7 +302,7 @@ def parse_paper_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--table-n", type=int_range(1, MAX_VEHICLES), default=8, help="UAVs in the Table II scenes (default 8)")
     parser.add_argument("--densities", type=_density_list, default=list(DENSITIES),
                         help="Table II densities (default small,medium,large)")
-    parser.add_argument("--ns", type=_int_list, default=list(DEFAULT_FIG6_NS),
+    parser.add_argument("--ns", type=int_list(1, MAX_VEHICLES), default=list(DEFAULT_FIG6_NS),
                         help="Fig. 6 swarm sizes (default " + ",".join(map(str, DEFAULT_FIG6_NS)) + ")")
     parser.add_argument("--radius", type=float_range(0.0, MAX_RADIUS_M, low_open=True), default=CIRCLE_RADIUS_M,
                         help=f"Fig. 6 circle radius in m (default {CIRCLE_RADIUS_M:g})")

@@ -25,9 +25,11 @@ from pathlib import Path
 import torch
 
 from companion.policy import PolicyFileError, load_policy
+from sitl.cli_args import MAX_THREADS, ArgumentParser, int_list, int_range, positive_int
 from sitl.learn.config import make_sim_config
 from sitl.learn.export import export_policy
 from sitl.learn.rescore import load_run
+from sitl.learn.sweep import DEFAULT_EVAL_EPISODES, eval_cell_list, eval_cells, evaluation_settings
 from sitl.learn.trainer import make_agent
 
 
@@ -86,44 +88,25 @@ def _selected_updates(stage_dir: Path) -> int | None:
     return None
 
 
-def _int_list(text: str) -> list[int]:
-    try:
-        values = [int(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated update counts, got {text!r}") from None
-    if not values:
-        raise argparse.ArgumentTypeError("no update counts given")
-    return values
-
-
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m sitl.learn.average", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(prog="python -m sitl.learn.average", description=__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("stage_dir", type=Path, metavar="STAGE_DIR",
                         help="a training stage's run directory (config.json, snapshots/, policy.pt)")
     parser.add_argument("--out", type=Path, required=True, help="the averaged policy file to write (.pt)")
-    parser.add_argument("--updates", type=_int_list, default=None,
+    parser.add_argument("--updates", type=int_list(1), default=None,
                         help="average only these snapshots, comma-separated update counts (default: every validated one)")
-    parser.add_argument("--eval", default="", metavar="CELLS",
+    parser.add_argument("--eval", type=eval_cell_list, default=[], metavar="CELLS",
                         help="then fly the averaged policy in these `sitl.sweep --eval` cells, comma-separated "
                              "(results under OUT's folder/eval/cells)")
-    parser.add_argument("--eval-episodes", type=int, default=500, help="episodes per evaluation cell (default: 500)")
-    parser.add_argument("--threads", type=int, default=2, help="torch threads (default: 2)")
+    parser.add_argument("--eval-episodes", type=positive_int, default=DEFAULT_EVAL_EPISODES,
+                        help=f"episodes per evaluation cell (default: {DEFAULT_EVAL_EPISODES})")
+    parser.add_argument("--threads", type=int_range(1, MAX_THREADS), default=2, help="torch threads (default: 2)")
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    from sitl.learn.sweep import evaluation_settings  # noqa: PLC0415 - only when evaluating
-
-    settings = evaluation_settings(args.eval_episodes)
-    labels = [c.strip() for c in args.eval.split(",") if c.strip()]
-    unknown = [c for c in labels if c not in settings]
-    if unknown:
-        parser.error(f"unknown evaluation cell(s) {', '.join(unknown)}; known: {', '.join(settings)}")
-    if args.eval_episodes < 1:
-        parser.error(f"--eval-episodes must be at least 1, got {args.eval_episodes}")
+    args = build_parser().parse_args(argv)
     torch.set_num_threads(args.threads)
     try:
         chosen = average_stage(args.stage_dir, args.out, args.updates)
@@ -131,12 +114,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     print(f"wrote {args.out}: the mean of {len(chosen)} snapshots ({', '.join(map(str, chosen))} updates)", flush=True)
-    if labels:
-        from sitl.eval.paper import PaperCell, run_cell  # noqa: PLC0415
+    if args.eval:
+        from sitl.eval.paper import run_cell  # noqa: PLC0415 - only when evaluating
 
-        method = json.loads((args.stage_dir / "config.json").read_text())["train"].get("method", "sac_ae")
-        for label in labels:
-            cell = PaperCell(label.replace(":", "-"), method, str(args.out), settings[label])
+        settings = evaluation_settings(args.eval_episodes)
+        for label, cell in eval_cells(args.stage_dir, args.eval, settings, policy=args.out):
             summary, status = run_cell(cell, args.out.parent / "eval", progress=False)
             print(f"{label}: success {summary['success_rate']:.3f} on {summary['episodes']} episodes ({status})",
                   flush=True)

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from sitl.cli_args import ArgumentParser, int_list
 from sitl.learn.agent import AgentConfig
 from sitl.learn.config import TrainConfig, make_sim_config
 from sitl.learn.trainer import agent_actor, evaluate_scenario, make_agent, select_snapshot
@@ -93,16 +94,6 @@ def selection_score(results: dict[str, dict]) -> float:
     return float(np.mean([np.mean(k) for k in kinds if k]))
 
 
-def _int_list(text: str) -> list[int]:
-    try:
-        values = [int(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
-    if any(v < 2 for v in values):
-        raise argparse.ArgumentTypeError(f"expected integers of at least 2, got {text!r}")
-    return values
-
-
 def _density_list(text: str) -> list[str]:
     values = [v.strip() for v in text.split(",") if v.strip()]
     bad = [v for v in values if v not in ("small", "medium", "large")]
@@ -112,16 +103,16 @@ def _density_list(text: str) -> list[str]:
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="python -m sitl.rescore", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(prog="python -m sitl.rescore", description=__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("run_dirs", nargs="+", type=Path, metavar="RUN_DIR", help="training run directories")
     parser.add_argument("--episodes", type=int, default=200, help="episodes per scene (default: 200)")
     parser.add_argument("--densities", type=_density_list, default=["medium"],
                         help="random scenes to fly, comma-separated (default: medium)")
-    parser.add_argument("--circle-uavs", type=_int_list, default=[8, 12, 14],
+    parser.add_argument("--circle-uavs", type=int_list(2, allow_empty=True), default=[8, 12, 14],
                         help="circle sizes to fly, comma-separated; empty for none (default: 8,12,14)")
     parser.add_argument("--random-uavs", type=int, default=8, help="UAVs in the random scenes (default: 8)")
-    parser.add_argument("--updates", type=_int_list, default=None,
+    parser.add_argument("--updates", type=int_list(2, allow_empty=True), default=None,
                         help="rescore only the snapshots at these update counts, comma-separated (default: all)")
     parser.add_argument("--threads", type=int, default=2, help="torch threads (default: 2)")
     args = parser.parse_args(argv)

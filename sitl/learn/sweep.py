@@ -129,7 +129,8 @@ def evaluation_settings(episodes: int) -> dict[str, "EvalSettings"]:
     return cells
 
 
-def _eval_list(text: str) -> list[str]:
+def eval_cell_list(text: str) -> list[str]:
+    """``--eval``'s parser: known, distinct evaluation cells (:func:`evaluation_settings`), comma-separated."""
     known = evaluation_settings(1)
     names = [v.strip() for v in text.split(",") if v.strip()]
     unknown = [n for n in names if n not in known]
@@ -159,7 +160,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="CPUs each run's task holds, and its torch threads (default 1)")
     parser.add_argument("--no-ray", dest="ray", action="store_false",
                         help="run the runs one after another in this process instead (no Ray needed)")
-    parser.add_argument("--eval", type=_eval_list, default=[], metavar="CELLS",
+    parser.add_argument("--eval", type=eval_cell_list, default=[], metavar="CELLS",
                         help="also fly every run's policy.pt in these swarm_test cells, comma-separated: "
                              "paper:random-small|medium|large, paper:circle-n8, flown:random-small|medium|large, "
                              "flown:circle-n8, flown:obstacles, flown:random-medium-jsbsim (one 1-CPU task each)")
@@ -280,13 +281,15 @@ def _read_text(path: Path) -> str | None:
 
 # --------------------------------------------------------------------------- evaluation cells
 
-def _eval_cells(run_dir: Path, labels: list[str], settings: dict[str, "EvalSettings"]) -> list[tuple[str, "PaperCell"]]:
-    """``(label, cell)`` for each ``--eval`` cell of one run: its policy file, evaluated as the method it trained."""
+def eval_cells(run_dir: Path, labels: list[str], settings: dict[str, "EvalSettings"],
+               policy: Path | None = None) -> list[tuple[str, "PaperCell"]]:
+    """``(label, cell)`` for each ``--eval`` cell of one run: its policy file (``policy``, default
+    ``run_dir/policy.pt``), evaluated as the method the run trained."""
     from sitl.eval.paper import PaperCell
 
     method = (_read_json(run_dir / "config.json") or {}).get("train", {}).get("method", "sac_ae")
-    return [(label, PaperCell(label.replace(":", "-"), method, str(run_dir / "policy.pt"), settings[label]))
-            for label in labels]
+    path = str(policy if policy is not None else run_dir / "policy.pt")
+    return [(label, PaperCell(label.replace(":", "-"), method, path, settings[label])) for label in labels]
 
 
 def _log_eval(run: SweepRun, label: str, summary: dict, status: str) -> None:
@@ -403,7 +406,7 @@ def run_sweep(out: Path, runs: list[SweepRun], train_argv: list[str], use_ray: b
     def cells_to_fly(run: SweepRun) -> list[tuple[str, "PaperCell"]]:
         """The run's evaluation cells not stored under its directory yet (the stored ones are taken)."""
         left = []
-        for label, cell in _eval_cells(out / run.name, evals or [], settings):
+        for label, cell in eval_cells(out / run.name, evals or [], settings):
             summary = stored_cell(cell, out / run.name / "eval")
             if summary is None:
                 left.append((label, cell))
