@@ -49,6 +49,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import math
 import os
@@ -308,8 +309,14 @@ class Rig:
     def __init__(self, procs: Processes, workdir: Path, checker: SetpointChecker, key_file: Path | None,
                  duration_s: float) -> None:
         self.procs, self.workdir = procs, workdir
-        self.vehicle_port, self.companion_port, self.depth_port, self.gcs_port = free_udp_ports(4)
-        self.proxy = Proxy(self.vehicle_port, self.companion_port, self.gcs_port, checker)
+        for attempt in range(5):
+            self.vehicle_port, self.companion_port, self.depth_port, self.gcs_port = free_udp_ports(4)
+            try:
+                self.proxy = Proxy(self.vehicle_port, self.companion_port, self.gcs_port, checker)
+                break
+            except OSError as err:  # a port probed free was taken before the bind (another process's late start)
+                if err.errno != errno.EADDRINUSE or attempt == 4:
+                    raise
         self.proxy.start()
         self.log = CompanionLog(workdir / "companion.jsonl")
         self.vehicle_log = workdir / "vehicle.jsonl"
