@@ -179,3 +179,48 @@ def test_an_extra_price_on_uav_collisions_leaves_other_collisions_at_r_collision
     assert -10.0 < _first_collision_reward(RewardConfig(), obstacle=False) < -9.0  # the paper: no extra price
     with pytest.raises(ValueError, match="uav_collision_extra_reward"):
         TrainConfig(uav_collision_extra_reward=1.0)
+
+
+def test_in_frustum_follows_the_camera_field_of_view_and_mount_pitch():
+    """A D435 (87 x 58 deg): ahead is seen, straight up and 45 deg to the side are not; a climb at
+    26.6 deg is inside the level camera's +-29 deg, outside once the camera is pitched 5 deg down."""
+    from companion.spec import REALSENSE_D435
+    from sitl.sim.camera import in_frustum
+
+    h, v = REALSENSE_D435.tan_half_hfov, REALSENSE_D435.tan_half_vfov
+    directions = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [1.0, 1.0, 0.0], [1.0, 0.9, 0.0],
+                           [1.0, 0.0, -0.5], [0.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
+    assert in_frustum(directions, h, v).tolist() == [True, False, False, True, True, False, False]
+    assert in_frustum(directions[4], h, v, math.radians(-5.0)).item() is False
+    assert in_frustum(directions[4], h, v, math.radians(5.0)).item() is True
+    # A direction 33 deg up is seen only by a camera pitched up by more than 4 deg.
+    up33 = np.array([math.cos(math.radians(33)), 0.0, -math.sin(math.radians(33))])
+    assert in_frustum(np.stack([up33] * 3), h, v, np.radians([0.0, 3.0, 5.0])).tolist() == [False, False, True]
+
+
+def test_the_blind_motion_reward_prices_speed_outside_the_camera_view_only():
+    """``--blind-motion-reward W``: a UAV climbing straight up pays W per m/s of its speed on top of eq. 2;
+    one flying level towards its goal pays nothing; W = 0 (the paper) changes nothing."""
+    from sitl.learn.config import TrainConfig, make_sim_config
+
+    def rewards(w_blind: float, action: list[float]) -> np.ndarray:
+        reward = make_sim_config(TrainConfig(blind_motion_reward=w_blind), num_worlds=1).reward
+        cfg = SimConfig(num_uavs=1, reward=reward, scenario=ScenarioConfig(name="random", density=0.01))
+        env = SwarmEnv(cfg, seed=0)
+        env.reset()
+        env.dynamics.reset(np.array([0]), np.array([[0.0, 0.0, -8.0]]), np.array([0.0]))
+        env.goal_ned[0] = [30.0, 0.0, -38.0]  # far ahead and far above: neither step arrives
+        out = []
+        for _ in range(20):
+            _, r, *_ = env.step(np.array([action]))
+            out.append((r[0], np.linalg.norm(env.dynamics.vel_ned[0])))
+        return np.array(out)
+
+    climb, level = [0.0, -0.5, 0.0], [2.0, 0.0, 0.0]
+    paper, priced = rewards(0.0, climb), rewards(-0.2, climb)
+    assert priced[-1, 1] > 0.4  # climbing at (almost) the full 0.5 m/s
+    np.testing.assert_allclose(priced[:, 0], paper[:, 0] - 0.2 * paper[:, 1], atol=1e-5)
+    np.testing.assert_allclose(rewards(-0.2, level)[:, 0], rewards(0.0, level)[:, 0], atol=1e-6)
+    assert make_sim_config(TrainConfig(), num_worlds=1).reward.w_blind == 0.0
+    with pytest.raises(ValueError, match="blind_motion_reward"):
+        TrainConfig(blind_motion_reward=0.5)

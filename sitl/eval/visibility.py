@@ -15,6 +15,7 @@ import numpy as np
 
 from companion.frames import ned_to_frd
 from companion.spec import CameraSpec
+from sitl.sim.camera import in_frustum
 
 
 def camera_fov_rad(camera: CameraSpec) -> tuple[float, float]:
@@ -29,7 +30,5 @@ def in_view(pos_ned: np.ndarray, yaw_rad: np.ndarray, other_ned: np.ndarray, hfo
     Shapes broadcast: ``pos_ned``/``other_ned`` [..., 3], ``yaw_rad`` [...].
     """
     d = other_ned - pos_ned
-    d_frd = ned_to_frd(d, yaw_rad)
-    fwd, right, down = d_frd[..., 0], d_frd[..., 1], d_frd[..., 2]
-    return ((fwd > 0) & (np.abs(np.arctan2(right, fwd)) <= hfov_rad / 2)
-            & (np.abs(np.arctan2(down, fwd)) <= vfov_rad / 2) & (np.linalg.norm(d, axis=-1) <= max_range_m))
+    return (in_frustum(ned_to_frd(d, yaw_rad), math.tan(hfov_rad / 2), math.tan(vfov_rad / 2))
+            & (np.linalg.norm(d, axis=-1) <= max_range_m))

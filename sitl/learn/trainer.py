@@ -569,6 +569,8 @@ class Trainer:
             "mount_pitch_jitter_deg": cfg.mount_pitch_jitter_deg, "avoid_counts_ground": cfg.avoid_counts_ground,
             "collision_reward": cfg.collision_reward, "uav_collision_extra_reward": cfg.uav_collision_extra_reward,
         }
+        if cfg.blind_motion_reward:  # not in the paper's reward
+            provenance["blind_motion_reward"] = cfg.blind_motion_reward
         if self.agent_cfg.privileged_critic:  # asymmetric actor-critic: not the paper's critic
             provenance["privileged_critic"] = {"neighbours": PRIVILEGED_NEIGHBOURS, "obstacle_point": True,
                                                "altitude": True, "module": "sitl.learn.privileged"}

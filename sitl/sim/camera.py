@@ -163,6 +163,21 @@ class DepthCamera:
         return out, nearest_object_m
 
 
+def in_frustum(d_frd: np.ndarray, tan_half_hfov: float, tan_half_vfov: float,
+               pitch_rad: np.ndarray | float = 0.0) -> np.ndarray:
+    """Whether directions ``d_frd`` [..., 3] (heading frame, FRD) point into a camera's field of view.
+
+    The camera is pitched up by ``pitch_rad`` (broadcasts against ``d_frd[..., 0]``), as the
+    renderer mounts it; range is not checked. A zero vector is outside.
+    """
+    d_frd = np.asarray(d_frd, dtype=np.float64)
+    cos_p, sin_p = np.cos(pitch_rad), np.sin(pitch_rad)
+    fwd, right, down = d_frd[..., 0], d_frd[..., 1], d_frd[..., 2]
+    ahead = fwd * cos_p - down * sin_p  # along the optical axis (the renderer's ray (1, u, v) inverted)
+    below = fwd * sin_p + down * cos_p  # along the image's down axis
+    return (ahead > 0) & (np.abs(right) <= tan_half_hfov * ahead) & (np.abs(below) <= tan_half_vfov * ahead)
+
+
 # --------------------------------------------------------------------------- kernel
 
 @numba.njit(cache=True, inline="always")

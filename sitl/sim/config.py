@@ -44,6 +44,10 @@ class RewardConfig:
     #: deviation: docs/training.md) takes d_min over other UAVs and obstacles only, as the
     #: camera kernel reports them; the ground stays in the collision term (altitude < R).
     avoid_counts_ground: bool = False
+    #: Reward per step and per m/s of the UAV's speed while its velocity points outside its own
+    #: camera's field of view (0, the paper: no such term). A training option against flying blind
+    #: (climbing or descending steeply at low forward speed): docs/training.md "Flying where the camera looks".
+    w_blind: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -35,7 +35,7 @@ from sitl.sim.collision import (DISABLED_BOX, DISABLED_CYLINDER, ground_collisio
 from sitl.sim.config import SimConfig
 from sitl.sim.dynamics import make_dynamics
 from sitl.sim.metrics import Outcome, UAVRecord
-from sitl.sim.reward import nearest_depth_m, step_reward
+from sitl.sim.reward import blind_speed_m_s, nearest_depth_m, step_reward
 from sitl.sim.scenarios import max_obstacles, sample_scenario
 
 # Outcome codes kept per UAV while an episode runs.
@@ -227,7 +227,9 @@ class SwarmEnv:
         depth = self._render()
         self.frames.push(depth)
         d_min = nearest_depth_m(depth) if cfg.reward.avoid_counts_ground else self.nearest_object_m
-        reward = step_reward(prev_dist, dist, arrived, collided, d_min, cfg.reward, hit_uav)
+        blind = (blind_speed_m_s(dynamics.vel_ned, dynamics.yaw_rad, self.mount_pitch_rad, cfg.camera)
+                 if cfg.reward.w_blind else None)
+        reward = step_reward(prev_dist, dist, arrived, collided, d_min, cfg.reward, hit_uav, blind)
         reward = np.where(acting, reward, 0.0).astype(np.float32)
         terminated = collided | arrived
         info = {"acting": acting, "outcome": self.outcome.copy(), "collided": collided, "arrived": arrived}
