@@ -43,6 +43,7 @@ def test_head_on_collisions_are_seen_by_both(tmp_path, capsys):
     # Both fly straight at full speed (2 m/s) into each other.
     assert 1.8 < summary["median_speed_when_saw_m_s"] <= 2.05 and 3.5 < summary["median_closing_speed_m_s"] <= 4.1
     assert summary["collider_moved_out_of_view"] == 0  # level flight along the heading
+    assert result["blind_flight"]["moving_steps"] > 0 and result["blind_flight"]["blind_share_of_distance"] == 0.0
     assert "| all UAV-UAV collisions |" in capsys.readouterr().out
 
 
@@ -138,3 +139,12 @@ def test_obstacle_clearance_is_for_the_obstacle_cell_only(capsys):
     assert "needs --protocol flown --cell obstacles" in err and "obstacle_clearance_m must be in [0.5, 100]" in err
     assert main(["--policy", "straight", "--protocol", "flown", "--cell", "obstacles", "--episodes", "1",
                  "--obstacle-clearance", "3"]) == 0
+
+
+def test_blind_flight_is_measured_and_mostly_vertical_for_a_straight_line_to_goals_above_and_below():
+    """Flying straight at goals at other altitudes climbs and descends too steeply for the camera at times."""
+    result = analyse("straight", EvalSettings(scenario=ScenarioConfig(name="random"), num_uavs=8, episodes=10,
+                                              record_paths=False))
+    blind = result["blind_flight"]
+    assert 0.0 < blind["blind_share_of_moving_steps"] < 0.5 and 0.0 < blind["blind_share_of_distance"] < 0.5
+    assert blind["vertical_share_of_blind"] > 0.5

@@ -16,6 +16,11 @@ each one was at the time limit and whether it was still flying: *stalled near it
 *stalled elsewhere*, or *still flying* (e.g. a detour too long for the time limit, or circling),
 with its distance to the goal and to the nearest static obstacle.
 
+It also measures how much of the flight goes where the camera does not look: the share of moving
+UAV-steps (faster than ``MOVING_M_S``) and of the distance flown whose velocity points outside the
+UAV's camera frustum, and how much of that is vertical (climbing or descending too steeply for the
+camera's vertical field of view) and within the first ``EARLY_S`` of the episode.
+
 Prints the tables and writes ``--json`` if given. Geometry test: the partner's centre inside
 the camera's horizontal and vertical field of view (heading frame, level camera as in the
 simulator) and within its range.
@@ -33,6 +38,9 @@ from pathlib import Path
 
 import numpy as np
 
+from companion.frames import ned_to_frd
+from sitl.sim.camera import blind_speed_m_s, in_frustum
+from sitl.cli_args import camera_preset
 from sitl.sim.config import CIRCLE_RADIUS_M, DENSITIES, ScenarioConfig, SimConfig
 from sitl.sim.collision import distance_to_obstacles_m
 from sitl.sim.env import COLLISION_UAV, TIMEOUT, SwarmEnv
@@ -49,6 +57,8 @@ TIME_BINS_S = (1.0, 2.0, 5.0)  # collision time since the episode start, for the
 STALL_WINDOW_S = 5.0  # a timed-out UAV's displacement is measured over this last window...
 STALLED_M = 0.5  # ...and below this it counts as stalled (0.1 m/s on average)
 NEAR_GOAL_M = 3.0  # "near its goal": the arrival radius is 0.5 m, so a stall inside this is the last metres
+MOVING_M_S = 0.2  # blind flight: a UAV slower than this is hovering or turning in place, its direction noise
+EARLY_S = 3.0  # blind flight "early": the first seconds, when UAVs leave their starts 1-2 m apart
 
 
 def moving_in_view(velocity_ned: np.ndarray, yaw_rad: float, hfov_rad: float, vfov_rad: float) -> bool:
@@ -178,6 +188,42 @@ def _median(events: list[dict], key: str) -> float:
     return float(np.median(values)) if values else float("nan")
 
 
+class BlindFlightObserver:
+    """Sums, over every acting UAV-step, the motion whose direction lies outside the UAV's camera frustum."""
+
+    def __init__(self, config: SimConfig) -> None:
+        self.camera, self.dt = config.camera, config.control_period_s
+        self.moving_steps = self.blind_steps = self.vertical_steps = self.early_steps = 0
+        self.distance_m = self.blind_distance_m = 0.0
+
+    def before_step(self, env: SwarmEnv) -> None:
+        self._acting = env.acting.copy()
+        self._early = np.repeat(env.world_steps * self.dt < EARLY_S, env.uavs_per_world)
+
+    def after_step(self, env: SwarmEnv, info: dict) -> None:
+        d, cam = env.dynamics, self.camera
+        rows = self._acting & (np.linalg.norm(d.vel_ned, axis=1) > MOVING_M_S)
+        vel, yaw, pitch = d.vel_ned[rows], d.yaw_rad[rows], env.mount_pitch_rad[rows]
+        blind = blind_speed_m_s(vel, yaw, pitch, cam) > 0
+        # Vertically blind: the direction leaves the frustum through its top or bottom (the horizontal
+        # test alone would pass it). A level forward camera's vertical half-angle is atan(tan_half_vfov).
+        level = in_frustum(ned_to_frd(vel, yaw) * np.array([1.0, 1.0, 0.0]), cam.tan_half_hfov, cam.tan_half_vfov, pitch)
+        speed = np.linalg.norm(vel, axis=1)
+        self.moving_steps += int(rows.sum())
+        self.blind_steps += int(blind.sum())
+        self.vertical_steps += int((blind & level).sum())
+        self.early_steps += int((blind & self._early[rows]).sum())
+        self.distance_m += float(speed.sum()) * self.dt
+        self.blind_distance_m += float(speed[blind].sum()) * self.dt
+
+    def summary(self) -> dict:
+        steps = max(self.moving_steps, 1)
+        return {"moving_steps": self.moving_steps, "blind_share_of_moving_steps": self.blind_steps / steps,
+                "blind_share_of_distance": self.blind_distance_m / max(self.distance_m, 1e-9),
+                "vertical_share_of_blind": self.vertical_steps / max(self.blind_steps, 1),
+                f"early_share_of_blind_first_{EARLY_S:g}_s": self.early_steps / max(self.blind_steps, 1)}
+
+
 class _Observers:
     """Calls several step observers in turn (``evaluate_method`` takes one)."""
 
@@ -197,9 +243,9 @@ def analyse(policy: str, settings: EvalSettings, progress: bool = False) -> dict
     """Fly ``settings.episodes`` episodes (as ``swarm_test`` does); classify every UAV-UAV collision and timeout."""
     method = resolve_method(policy)
     config = sim_config_for(method, settings, 1)
-    collisions, timeouts = CollisionObserver(config), TimeoutObserver(config)
+    collisions, timeouts, blind = CollisionObserver(config), TimeoutObserver(config), BlindFlightObserver(config)
     result = evaluate_method(method, settings, progress=progress, desc="collision anatomy",
-                             observer=_Observers(collisions, timeouts))
+                             observer=_Observers(collisions, timeouts, blind))
     uav_episodes = settings.episodes * settings.num_uavs
     events = sorted(collisions.events, key=lambda e: (e["episode"], e["time_s"], e["uav"]))
     timed_out = sorted(timeouts.events, key=lambda e: (e["episode"], e["uav"]))
@@ -208,7 +254,7 @@ def analyse(policy: str, settings: EvalSettings, progress: bool = False) -> dict
             "collision_uav_rate": result.summary["collision_uav_rate"], "events": events,
             "summary": summarize_events(events, uav_episodes),
             "timeout_rate": result.summary["timeout_rate"], "timeout_events": timed_out,
-            "timeouts": summarize_timeouts(timed_out, uav_episodes)}
+            "timeouts": summarize_timeouts(timed_out, uav_episodes), "blind_flight": blind.summary()}
 
 
 def summarize_events(events: list[dict], uav_episodes: int) -> dict:
@@ -250,6 +296,11 @@ def format_table(result: dict) -> str:
     lines.append(f"median speed at the collision: {s['median_speed_when_saw_m_s']:.2f} m/s when the collider had "
                  f"the partner in view, {s['median_speed_when_did_not_see_m_s']:.2f} m/s when not; median closing "
                  f"speed {s['median_closing_speed_m_s']:.2f} m/s")
+    b = result["blind_flight"]
+    lines.append(f"flight outside the camera's view: {b['blind_share_of_moving_steps']:.3f} of the moving UAV-steps "
+                 f"(> {MOVING_M_S:g} m/s), {b['blind_share_of_distance']:.3f} of the distance flown; of those steps "
+                 f"{b['vertical_share_of_blind']:.2f} vertical (too steep for the camera) and "
+                 f"{b[f'early_share_of_blind_first_{EARLY_S:g}_s']:.2f} in the first {EARLY_S:g} s")
     t = result["timeouts"]
     lines += ["", f"timeouts: {t['timeouts']} UAVs ({t['rate']:.3f} per UAV-episode)",
               "| at the time limit | UAVs | per UAV-episode | median distance to goal (m) | "
@@ -279,6 +330,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--n", type=int, default=8, help="UAVs per episode")
     parser.add_argument("--episodes", type=int, default=100, help="episodes")
     parser.add_argument("--seed", type=int, default=0, help="evaluation seed (episodes of 1,000,000 + seed)")
+    parser.add_argument("--camera", type=camera_preset, default=None,
+                        help="with --protocol flown: camera preset the UAVs carry (default: the policy's own, paper "
+                             "for the references; orca-fov avoids what this camera covers, e.g. realsense_d435)")
     parser.add_argument("--obstacle-clearance", type=float, metavar="M",
                         help="with --cell obstacles: keep obstacles M m from every start and goal instead of the "
                              f"scene's {ScenarioConfig.obstacle_clearance_m:g} m (does a pole beside the goal stall it?)")
@@ -291,10 +345,13 @@ def main(argv: list[str] | None = None) -> int:
                    if any(a == flag or a.startswith(flag + "=") for a in given)]
     if args.protocol == "flown" and paper_scene:  # the cell fixes the scene: a flag that would be ignored is refused
         parser.error(f"{', '.join(paper_scene)}: a paper-protocol scene setting; with --protocol flown choose a --cell")
+    if args.camera is not None and args.protocol != "flown":
+        parser.error("--camera needs --protocol flown")
     if args.obstacle_clearance is not None and (args.protocol != "flown" or args.cell != "obstacles"):
         parser.error("--obstacle-clearance needs --protocol flown --cell obstacles")
     if args.protocol == "flown":
-        settings = next(c.settings for c in flown_cells(args.episodes, args.seed, jsbsim=False) if c.name == args.cell)
+        settings = next(c.settings for c in flown_cells(args.episodes, args.seed, jsbsim=False, camera=args.camera)
+                        if c.name == args.cell)
         if args.obstacle_clearance is not None:
             try:
                 scenario = dataclasses.replace(settings.scenario, obstacle_clearance_m=args.obstacle_clearance)

@@ -35,6 +35,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from companion.frames import ned_to_frd
 from companion.spec import DEFAULT_TASK_SPEC, CameraSpec
 
 _EPS_FWD = 1e-3  # an object reaching closer than this to the image plane is not culled
@@ -176,6 +177,17 @@ def in_frustum(d_frd: np.ndarray, tan_half_hfov: float, tan_half_vfov: float,
     ahead = fwd * cos_p - down * sin_p  # along the optical axis (the renderer's ray (1, u, v) inverted)
     below = fwd * sin_p + down * cos_p  # along the image's down axis
     return (ahead > 0) & (np.abs(right) <= tan_half_hfov * ahead) & (np.abs(below) <= tan_half_vfov * ahead)
+
+
+def blind_speed_m_s(vel_ned: np.ndarray, yaw_rad: np.ndarray, pitch_rad: np.ndarray | float,
+                    camera: CameraSpec) -> np.ndarray:
+    """Each UAV's speed (m/s) where its velocity points outside its camera's frustum, else 0 [M].
+
+    On a forward camera this is mostly vertical: a D435 covers +-29 deg, so a climb at 0.5 m/s is
+    blind below ~0.9 m/s of forward speed.
+    """
+    seen = in_frustum(ned_to_frd(vel_ned, yaw_rad), camera.tan_half_hfov, camera.tan_half_vfov, pitch_rad)
+    return np.where(seen, 0.0, np.linalg.norm(vel_ned, axis=-1))
 
 
 # --------------------------------------------------------------------------- kernel

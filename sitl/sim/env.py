@@ -29,13 +29,13 @@ import numpy as np
 
 from companion.observation import DepthFrameStack, build_state, clean_depth
 from companion.spec import DEFAULT_ACTION_SPEC, ActionSpec
-from sitl.sim.camera import DepthCamera
+from sitl.sim.camera import DepthCamera, blind_speed_m_s
 from sitl.sim.collision import (DISABLED_BOX, DISABLED_CYLINDER, ground_collisions, obstacle_collisions,
                                 uav_uav_collisions)
 from sitl.sim.config import SimConfig
 from sitl.sim.dynamics import make_dynamics
 from sitl.sim.metrics import Outcome, UAVRecord
-from sitl.sim.reward import blind_speed_m_s, nearest_depth_m, step_reward
+from sitl.sim.reward import nearest_depth_m, step_reward
 from sitl.sim.scenarios import max_obstacles, sample_scenario
 
 # Outcome codes kept per UAV while an episode runs.

@@ -1,16 +1,13 @@
 """The paper's reward, eqs. 2-4: progress to the goal plus a penalty for nearby surfaces.
 
 Beside it, one training option that is not the paper's: a price on flying where the camera does
-not look (``RewardConfig.w_blind``, :func:`blind_speed_m_s`).
+not look (``RewardConfig.w_blind``, :func:`sitl.sim.camera.blind_speed_m_s`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from companion.frames import ned_to_frd
-from companion.spec import CameraSpec
-from sitl.sim.camera import in_frustum
 from sitl.sim.config import RewardConfig
 
 
@@ -39,18 +36,12 @@ def avoid_reward(collided: np.ndarray, d_min_m: np.ndarray, cfg: RewardConfig,
     return np.where(collided, r_collision, cfg.w_avoid * np.maximum(cfg.d_safe_m - d_min_m, 0.0))
 
 
-def blind_speed_m_s(vel_ned: np.ndarray, yaw_rad: np.ndarray, pitch_rad: np.ndarray, camera: CameraSpec) -> np.ndarray:
-    """Each UAV's speed (m/s) where its velocity points outside its camera's frustum, else 0 [M]."""
-    seen = in_frustum(ned_to_frd(vel_ned, yaw_rad), camera.tan_half_hfov, camera.tan_half_vfov, pitch_rad)
-    return np.where(seen, 0.0, np.linalg.norm(vel_ned, axis=1))
-
-
 def step_reward(prev_dist_m: np.ndarray, dist_m: np.ndarray, arrived: np.ndarray, collided: np.ndarray,
                 d_min_m: np.ndarray, cfg: RewardConfig, hit_uav: np.ndarray | None = None,
                 blind_speed: np.ndarray | None = None) -> np.ndarray:
     """Eq. 2: r = r_goal + r_avoid. A UAV that collides gets no arrival bonus in the same step.
 
-    ``blind_speed`` (:func:`blind_speed_m_s`) adds ``cfg.w_blind`` per m/s on the steps that end
+    ``blind_speed`` (:func:`sitl.sim.camera.blind_speed_m_s`) adds ``cfg.w_blind`` per m/s on the steps that end
     neither in a collision nor in arrival (not in the paper; ``w_blind`` 0 leaves eq. 2 as it is).
     """
     reward = goal_reward(prev_dist_m, dist_m, arrived & ~collided, cfg) + avoid_reward(collided, d_min_m, cfg, hit_uav)
