@@ -109,10 +109,11 @@ def test_spl_matches_equation_9_by_hand():
     assert math.isnan(spl([]))
 
 
-def _hover_reward(altitude_m: float, counts_ground: bool, other_ahead_m: float | None = None) -> float:
+def _hover_reward(altitude_m: float, counts_ground: bool, other_ahead_m: float | None = None,
+                  reward: RewardConfig | None = None) -> float:
     """The reward of UAV 0 hovering level at ``altitude_m`` in an empty scene (UAV 1 far behind or ahead)."""
     cfg = SimConfig(num_uavs=2, scenario=ScenarioConfig(name="circle", circle_radius_m=30.0, circle_jitter_m=0.0),
-                    reward=RewardConfig(avoid_counts_ground=counts_ground))
+                    reward=reward or RewardConfig(avoid_counts_ground=counts_ground))
     env = SwarmEnv(cfg, seed=0)
     env.reset()
     other = [other_ahead_m, 0.0, -altitude_m] if other_ahead_m is not None else [-50.0, 0.0, -altitude_m]
@@ -224,3 +225,14 @@ def test_the_blind_motion_reward_prices_speed_outside_the_camera_view_only():
     assert make_sim_config(TrainConfig(), num_worlds=1).reward.w_blind == 0.0
     with pytest.raises(ValueError, match="blind_motion_reward"):
         TrainConfig(blind_motion_reward=0.5)
+
+
+def test_the_training_config_sets_eq4s_avoid_weight():
+    """``--avoid-weight W``: a UAV 2.7 m from another's surface pays W * (5 - 2.7) per step (paper W = -0.05)."""
+    from sitl.learn.config import TrainConfig, make_sim_config
+
+    reward = make_sim_config(TrainConfig(avoid_weight=-0.15), num_worlds=1).reward
+    assert _hover_reward(8.0, False, other_ahead_m=3.0, reward=reward) == pytest.approx(-0.15 * (5.0 - 2.7), abs=5e-3)
+    assert make_sim_config(TrainConfig(), num_worlds=1).reward.w_avoid == RewardConfig().w_avoid == -0.05
+    with pytest.raises(ValueError, match="avoid_weight"):
+        TrainConfig(avoid_weight=0.1)

@@ -81,6 +81,9 @@ class TrainConfig:
     uav_collision_extra_reward: float = _param(RewardConfig.r_collision_uav_extra,
                                                "added to r_collision when a UAV hits another UAV (paper: 0; "
                                                "docs/training.md 'The collision reward')")
+    avoid_weight: float = _param(RewardConfig.w_avoid,
+                                 "eq. 4's w_avoid: reward per step and per metre that the nearest UAV or obstacle in "
+                                 "view is closer than d_safe (paper: -0.05)")
     blind_motion_reward: float = _param(RewardConfig.w_blind,
                                         "reward per step and per m/s of speed while the UAV's velocity points "
                                         "outside its camera's view (paper: 0; docs/training.md 'Flying where the "
@@ -163,6 +166,8 @@ class TrainConfig:
             raise ValueError(f"collision_reward must be in [-1000, 0], got {self.collision_reward}")
         if not -1_000.0 <= self.uav_collision_extra_reward <= 0.0:
             raise ValueError(f"uav_collision_extra_reward must be in [-1000, 0], got {self.uav_collision_extra_reward}")
+        if not -10.0 <= self.avoid_weight <= 0.0:
+            raise ValueError(f"avoid_weight must be in [-10, 0], got {self.avoid_weight}")
         if not -10.0 <= self.blind_motion_reward <= 0.0:
             raise ValueError(f"blind_motion_reward must be in [-10, 0], got {self.blind_motion_reward}")
         if not 0.0 <= self.teacher_bc_weight <= 100.0:
@@ -338,7 +343,7 @@ def make_sim_config(cfg: TrainConfig, num_worlds: int, record_paths: bool = Fals
                      max_episode_steps=cfg.max_episode_steps, record_paths=record_paths,
                      reward=RewardConfig(arrival_radius_m=cfg.arrival_radius_m, r_collision=cfg.collision_reward,
                                          r_collision_uav_extra=cfg.uav_collision_extra_reward,
-                                         w_blind=cfg.blind_motion_reward,
+                                         w_avoid=cfg.avoid_weight, w_blind=cfg.blind_motion_reward,
                                          avoid_counts_ground=cfg.avoid_counts_ground))
 
 

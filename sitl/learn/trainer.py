@@ -30,7 +30,7 @@ from sitl.learn.config import TrainConfig, evaluation_scenarios, make_sim_config
 from sitl.learn.export import export_policy
 from sitl.learn.privileged import PRIVILEGED_NEIGHBOURS, env_privileged_features
 from sitl.learn.progress import Progress
-from sitl.sim.config import SimConfig
+from sitl.sim.config import RewardConfig, SimConfig
 from sitl.sim.env import SwarmEnv
 from sitl.sim.episodes import ActorFactory, depth_state_actor, run_episodes
 from sitl.sim.metrics import summarize
@@ -571,6 +571,8 @@ class Trainer:
         }
         if cfg.blind_motion_reward:  # not in the paper's reward
             provenance["blind_motion_reward"] = cfg.blind_motion_reward
+        if cfg.avoid_weight != RewardConfig.w_avoid:  # not the paper's eq. 4 weight
+            provenance["avoid_weight"] = cfg.avoid_weight
         if self.agent_cfg.privileged_critic:  # asymmetric actor-critic: not the paper's critic
             provenance["privileged_critic"] = {"neighbours": PRIVILEGED_NEIGHBOURS, "obstacle_point": True,
                                                "altitude": True, "module": "sitl.learn.privileged"}
