@@ -39,8 +39,8 @@ from pathlib import Path
 import numpy as np
 
 from companion.frames import ned_to_frd
-from sitl.sim.camera import blind_speed_m_s, in_frustum
 from sitl.cli_args import camera_preset
+from sitl.sim.camera import blind_speed_m_s, in_frustum
 from sitl.sim.config import CIRCLE_RADIUS_M, DENSITIES, ScenarioConfig, SimConfig
 from sitl.sim.collision import distance_to_obstacles_m
 from sitl.sim.env import COLLISION_UAV, TIMEOUT, SwarmEnv
@@ -205,8 +205,8 @@ class BlindFlightObserver:
         rows = self._acting & (np.linalg.norm(d.vel_ned, axis=1) > MOVING_M_S)
         vel, yaw, pitch = d.vel_ned[rows], d.yaw_rad[rows], env.mount_pitch_rad[rows]
         blind = blind_speed_m_s(vel, yaw, pitch, cam) > 0
-        # Vertically blind: the direction leaves the frustum through its top or bottom (the horizontal
-        # test alone would pass it). A level forward camera's vertical half-angle is atan(tan_half_vfov).
+        # Vertically blind: outside the frustum, but its horizontal projection inside (it leaves
+        # through the top or bottom of the view, not the sides).
         level = in_frustum(ned_to_frd(vel, yaw) * np.array([1.0, 1.0, 0.0]), cam.tan_half_hfov, cam.tan_half_vfov, pitch)
         speed = np.linalg.norm(vel, axis=1)
         self.moving_steps += int(rows.sum())
