@@ -40,7 +40,7 @@ import numpy as np
 
 from companion.frames import ned_to_frd
 from sitl.cli_args import camera_preset
-from sitl.sim.camera import blind_speed_m_s, in_frustum
+from sitl.sim.camera import in_frustum
 from sitl.sim.config import CIRCLE_RADIUS_M, DENSITIES, ScenarioConfig, SimConfig
 from sitl.sim.collision import distance_to_obstacles_m
 from sitl.sim.env import COLLISION_UAV, TIMEOUT, SwarmEnv
@@ -67,12 +67,9 @@ def moving_in_view(velocity_ned: np.ndarray, yaw_rad: float, hfov_rad: float, vf
     A UAV that climbs or descends steeply at low forward speed moves into space its camera does not
     cover (a D435 sees +-29 deg vertically); one that is still counts as in view.
     """
-    speed = float(np.linalg.norm(velocity_ned))
-    if speed < 1e-6:
+    if float(np.linalg.norm(velocity_ned)) < 1e-6:
         return True
-    # The unit direction is a point 1 m away: any range above 1 m keeps only the frustum's angles.
-    return bool(in_view(np.zeros(3), np.asarray(yaw_rad), np.asarray(velocity_ned) / speed, hfov_rad, vfov_rad,
-                        max_range_m=np.inf))
+    return bool(in_frustum(ned_to_frd(np.asarray(velocity_ned), yaw_rad), math.tan(hfov_rad / 2), math.tan(vfov_rad / 2)))
 
 
 class CollisionObserver:
@@ -202,13 +199,14 @@ class BlindFlightObserver:
 
     def after_step(self, env: SwarmEnv, info: dict) -> None:
         d, cam = env.dynamics, self.camera
-        rows = self._acting & (np.linalg.norm(d.vel_ned, axis=1) > MOVING_M_S)
-        vel, yaw, pitch = d.vel_ned[rows], d.yaw_rad[rows], env.mount_pitch_rad[rows]
-        blind = blind_speed_m_s(vel, yaw, pitch, cam) > 0
+        speed = np.linalg.norm(d.vel_ned, axis=1)
+        rows = self._acting & (speed > MOVING_M_S)
+        speed, pitch = speed[rows], env.mount_pitch_rad[rows]
+        v_frd = ned_to_frd(d.vel_ned[rows], d.yaw_rad[rows])
+        blind = ~in_frustum(v_frd, cam.tan_half_hfov, cam.tan_half_vfov, pitch)
         # Vertically blind: outside the frustum, but its horizontal projection inside (it leaves
         # through the top or bottom of the view, not the sides).
-        level = in_frustum(ned_to_frd(vel, yaw) * np.array([1.0, 1.0, 0.0]), cam.tan_half_hfov, cam.tan_half_vfov, pitch)
-        speed = np.linalg.norm(vel, axis=1)
+        level = in_frustum(v_frd * np.array([1.0, 1.0, 0.0]), cam.tan_half_hfov, cam.tan_half_vfov, pitch)
         self.moving_steps += int(rows.sum())
         self.blind_steps += int(blind.sum())
         self.vertical_steps += int((blind & level).sum())
