@@ -57,6 +57,15 @@ def test_ensemble_flies_the_mean_of_its_members_actions(tmp_path):
     assert [m["path"] for m in provenance["ensemble"]["members"]] == [str(p) for p in members]
     assert provenance["seed"] == 1 and "evaluation" not in provenance  # the first member's, without its test result
 
+    # The command line writes the same file and flies it in an evaluation cell.
+    done = subprocess.run([sys.executable, "-m", "sitl.learn.ensemble", *map(str, members[:2]), "--out",
+                           str(tmp_path / "cli" / "e.pt"), "--eval", "paper:random-medium", "--eval-episodes", "2",
+                           "--threads", "1"], capture_output=True, text=True, cwd=tmp_path, timeout=300,
+                          env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert done.returncode == 0, done.stderr
+    assert "the mean action of 2 policies" in done.stdout and "paper:random-medium: success" in done.stdout
+    assert (tmp_path / "cli" / "eval" / "cells" / "paper-random-medium.json").is_file()
+
 
 def test_bad_input_is_one_line_and_exit_2(tmp_path):
     def run(*args):

@@ -25,11 +25,11 @@ from pathlib import Path
 import torch
 
 from companion.policy import PolicyFileError, load_policy
-from sitl.cli_args import MAX_THREADS, ArgumentParser, int_list, int_range, positive_int
+from sitl.cli_args import ArgumentParser, int_list
 from sitl.learn.config import make_sim_config
 from sitl.learn.export import export_policy
 from sitl.learn.rescore import load_run
-from sitl.learn.sweep import DEFAULT_EVAL_EPISODES, eval_cell_list, eval_cells, evaluation_settings
+from sitl.learn.sweep import add_policy_eval_options, eval_cells, evaluation_settings, fly_policy_cells
 from sitl.learn.trainer import make_agent
 
 
@@ -96,12 +96,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", type=Path, required=True, help="the averaged policy file to write (.pt)")
     parser.add_argument("--updates", type=int_list(1), default=None,
                         help="average only these snapshots, comma-separated update counts (default: every validated one)")
-    parser.add_argument("--eval", type=eval_cell_list, default=[], metavar="CELLS",
-                        help="then fly the averaged policy in these `sitl.sweep --eval` cells, comma-separated "
-                             "(results under OUT's folder/eval/cells)")
-    parser.add_argument("--eval-episodes", type=positive_int, default=DEFAULT_EVAL_EPISODES,
-                        help=f"episodes per evaluation cell (default: {DEFAULT_EVAL_EPISODES})")
-    parser.add_argument("--threads", type=int_range(1, MAX_THREADS), default=2, help="torch threads (default: 2)")
+    add_policy_eval_options(parser)
     return parser
 
 
@@ -115,13 +110,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     print(f"wrote {args.out}: the mean of {len(chosen)} snapshots ({', '.join(map(str, chosen))} updates)", flush=True)
     if args.eval:
-        from sitl.eval.paper import run_cell  # noqa: PLC0415 - only when evaluating
-
-        settings = evaluation_settings(args.eval_episodes)
-        for label, cell in eval_cells(args.stage_dir, args.eval, settings, policy=args.out):
-            summary, status = run_cell(cell, args.out.parent / "eval", progress=False)
-            print(f"{label}: success {summary['success_rate']:.3f} on {summary['episodes']} episodes ({status})",
-                  flush=True)
+        fly_policy_cells(eval_cells(args.stage_dir, args.eval, evaluation_settings(args.eval_episodes), policy=args.out),
+                         args.out.parent)
     return 0
 
 

@@ -27,9 +27,9 @@ from torch import nn
 
 from companion.checked_policy import unwrap_checked
 from companion.policy import PolicyFileError, load_policy, save_policy
-from sitl.cli_args import MAX_THREADS, ArgumentParser, int_range, positive_int
+from sitl.cli_args import ArgumentParser
 from sitl.eval.methods import file_digest
-from sitl.learn.sweep import DEFAULT_EVAL_EPISODES, eval_cell_list, evaluation_settings
+from sitl.learn.sweep import add_policy_eval_options, evaluation_settings, fly_policy_cells
 
 #: policy.json fields the members must agree on (the contract the ensemble's file declares).
 SHARED_FIELDS = ("depth", "control_period_s", "state_names", "action", "body_frame", "task")
@@ -87,12 +87,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("policies", type=Path, nargs="+", metavar="POLICY",
                         help="two or more policy files (.pt) with the same policy.json contract")
     parser.add_argument("--out", type=Path, required=True, help="the ensemble policy file to write (.pt)")
-    parser.add_argument("--eval", type=eval_cell_list, default=[], metavar="CELLS",
-                        help="then fly the ensemble in these `sitl.sweep --eval` cells, comma-separated "
-                             "(results under OUT's folder/eval/cells)")
-    parser.add_argument("--eval-episodes", type=positive_int, default=DEFAULT_EVAL_EPISODES,
-                        help=f"episodes per evaluation cell (default: {DEFAULT_EVAL_EPISODES})")
-    parser.add_argument("--threads", type=int_range(1, MAX_THREADS), default=2, help="torch threads (default: 2)")
+    add_policy_eval_options(parser)
     return parser
 
 
@@ -106,14 +101,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     print(f"wrote {args.out}: the mean action of {len(args.policies)} policies", flush=True)
     if args.eval:
-        from sitl.eval.paper import PaperCell, run_cell  # noqa: PLC0415 - only when evaluating
+        from sitl.eval.paper import PaperCell  # noqa: PLC0415 - only when evaluating
 
         settings = evaluation_settings(args.eval_episodes)
-        for label in args.eval:
-            cell = PaperCell(label.replace(":", "-"), "sac_ae", str(args.out), settings[label])
-            summary, status = run_cell(cell, args.out.parent / "eval", progress=False)
-            print(f"{label}: success {summary['success_rate']:.3f} on {summary['episodes']} episodes ({status})",
-                  flush=True)
+        fly_policy_cells([(label, PaperCell(label.replace(":", "-"), "sac_ae", str(args.out), settings[label]))
+                          for label in args.eval], args.out.parent)
     return 0
 
 

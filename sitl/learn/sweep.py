@@ -49,7 +49,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from sitl.cli_args import ArgumentParser, int_range, output_dir
+from sitl.cli_args import MAX_THREADS, ArgumentParser, int_range, output_dir, positive_int
 from sitl.distributed import LOCAL, RayUnavailable, connect, describe_cluster, log, single_thread
 from sitl.eval.methods import EvaluationError
 from sitl.eval.report import write_json
@@ -280,6 +280,27 @@ def _read_text(path: Path) -> str | None:
 
 
 # --------------------------------------------------------------------------- evaluation cells
+
+def add_policy_eval_options(parser: argparse.ArgumentParser) -> None:
+    """``--eval``, ``--eval-episodes`` and ``--threads`` of the tools that write one policy file and may fly it
+    (``sitl.learn.average``, ``sitl.learn.ensemble``): :func:`fly_policy_cells` reads them."""
+    parser.add_argument("--eval", type=eval_cell_list, default=[], metavar="CELLS",
+                        help="then fly the written policy in these `sitl.sweep --eval` cells, comma-separated "
+                             "(results under OUT's folder/eval/cells)")
+    parser.add_argument("--eval-episodes", type=positive_int, default=DEFAULT_EVAL_EPISODES,
+                        help=f"episodes per evaluation cell (default: {DEFAULT_EVAL_EPISODES})")
+    parser.add_argument("--threads", type=int_range(1, MAX_THREADS), default=2, help="torch threads (default: 2)")
+
+
+def fly_policy_cells(cells: list[tuple[str, "PaperCell"]], out_dir: Path) -> None:
+    """Fly each ``(label, cell)`` (results under ``out_dir/eval/cells``, an identical one reused) and print its success."""
+    from sitl.eval.paper import run_cell
+
+    for label, cell in cells:
+        summary, status = run_cell(cell, out_dir / "eval", progress=False)
+        print(f"{label}: success {summary['success_rate']:.3f} on {summary['episodes']} episodes ({status})",
+              flush=True)
+
 
 def eval_cells(run_dir: Path, labels: list[str], settings: dict[str, "EvalSettings"],
                policy: Path | None = None) -> list[tuple[str, "PaperCell"]]:
