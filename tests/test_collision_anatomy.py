@@ -43,6 +43,11 @@ def test_head_on_collisions_are_seen_by_both(tmp_path, capsys):
     # Both fly straight at full speed (2 m/s) into each other.
     assert 1.8 < summary["median_speed_when_saw_m_s"] <= 2.05 and 3.5 < summary["median_closing_speed_m_s"] <= 4.1
     assert summary["collider_moved_out_of_view"] == 0  # level flight along the heading
+    # In view from 20 m (the paper camera's range), 1-2 s after the start: 4.5-5 s (the window looked back)
+    # before the collision; flying straight, neither slows down.
+    assert all(4.5 <= e["warning_s"] <= 5.0 for e in result["events"])
+    assert summary["saw_with_warning_at_least_2_s"] == result["collisions"]
+    assert abs(summary["median_speed_change_when_saw_m_s"]) < 0.1
     assert result["blind_flight"]["moving_steps"] > 0 and result["blind_flight"]["blind_share_of_distance"] == 0.0
     assert "| all UAV-UAV collisions |" in capsys.readouterr().out
 

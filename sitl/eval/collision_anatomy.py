@@ -5,7 +5,10 @@ test episodes as ``python -m sitl.swarm_test`` and, for every UAV that collides 
 another, asks whether the partner was inside the collider's camera frustum (and whether the
 collider was inside the partner's) at any control step of the last second before the
 collision. Collisions neither UAV could see coming are out of reach of any policy that
-sees only its own camera; collisions the collider saw are the policy's to avoid.
+sees only its own camera; collisions the collider saw are the policy's to avoid. For those it
+also says how early the collider first had the partner in view (looked for up to
+``WARNING_WINDOW_S`` back) and how its speed changed since: a partner seen seconds ahead with no
+slowing down is a decision the policy got wrong, one that entered the view at the last moment is not.
 
     python -m sitl.collision_anatomy --scenario random --density medium --episodes 100
     python -m sitl.collision_anatomy --protocol flown --cell random-medium --episodes 100
@@ -53,6 +56,8 @@ from sitl.eval.visibility import camera_fov_rad, in_view
 #: kinematic model). ``sitl.eval.flown.FLOWN_CELL_NAMES`` has them all.
 KINEMATIC_FLOWN_CELLS = tuple(c.name for c in flown_cells(episodes=1, jsbsim=False))
 LOOKBACK_S = 1.0  # "could have seen it coming": in view at some step of this window before the collision
+WARNING_WINDOW_S = 5.0  # how early the collider first had the partner in view is looked for this far back
+WARNING_LONG_S = 2.0  # "seen well in advance": first in view at least this long before the collision
 TIME_BINS_S = (1.0, 2.0, 5.0)  # collision time since the episode start, for the table
 STALL_WINDOW_S = 5.0  # a timed-out UAV's displacement is measured over this last window...
 STALLED_M = 0.5  # ...and below this it counts as stalled (0.1 m/s on average)
@@ -86,8 +91,9 @@ class CollisionObserver:
         self.max_range_m = cam.max_range_m
         self.dt = config.control_period_s
         self.n = config.num_uavs
+        self.lookback_steps = max(1, round(LOOKBACK_S / self.dt))
         self.recent: deque[tuple[np.ndarray, np.ndarray, np.ndarray]] = deque(
-            maxlen=max(1, round(LOOKBACK_S / self.dt)))
+            maxlen=max(self.lookback_steps, round(WARNING_WINDOW_S / self.dt)))
         self.events: list[dict] = []
         self._acting = np.zeros(0, dtype=bool)
 
@@ -107,17 +113,31 @@ class CollisionObserver:
                              np.linalg.norm(after[rows] - after[r], axis=1))
             partner = int(rows[np.argmin(gap)])
             episode = int(env.world_episode[world])
-            window = [(pos, yaw) for pos, yaw, episodes in self.recent if episodes[world] == episode]
+            history = [(pos, yaw) for pos, yaw, episodes in self.recent if episodes[world] == episode]
+            window = history[-self.lookback_steps:]
             saw = any(in_view(pos[r], yaw[r], pos[partner], self.hfov, self.vfov, self.max_range_m)
                       for pos, yaw in window)
             seen = any(in_view(pos[partner], yaw[partner], pos[r], self.hfov, self.vfov, self.max_range_m)
                        for pos, yaw in window)
+            # How early the collider first had the partner in view (within WARNING_WINDOW_S), and how fast
+            # it flew then: a long warning with no slowing down is a decision, not a sensing, failure.
+            sighted = [k for k, (pos, yaw) in enumerate(history)
+                       if in_view(pos[r], yaw[r], pos[partner], self.hfov, self.vfov, self.max_range_m)]
+            first = sighted[0] if sighted else None
             velocity = (after - before) / self.dt
             heading_seen = moving_in_view(velocity[r], self.recent[-1][1][r], self.hfov, self.vfov)
             offset = before[partner] - before[r]
             gap_rate = np.dot(velocity[partner] - velocity[r], offset) / max(np.linalg.norm(offset), 1e-6)
+            if first is None:
+                warning_s, speed_at_sight = 0.0, None
+            else:
+                warning_s = (len(history) - first) * self.dt
+                later = history[first + 1][0][r] if first + 1 < len(history) else after[r]
+                speed_at_sight = float(np.linalg.norm(later - history[first][0][r])) / self.dt
             self.events.append({"episode": episode, "uav": int(r % n), "partner": int(partner % n),
                                 "speed_m_s": round(float(np.linalg.norm(velocity[r])), 2),
+                                "warning_s": round(warning_s, 2),
+                                "speed_at_first_sight_m_s": None if speed_at_sight is None else round(speed_at_sight, 2),
                                 "closing_speed_m_s": round(float(-gap_rate), 2),
                                 "time_s": round(int(env.world_steps[world]) * self.dt, 2),
                                 "collider_saw_partner": bool(saw), "partner_saw_collider": bool(seen),
@@ -266,10 +286,19 @@ def summarize_events(events: list[dict], uav_episodes: int) -> dict:
         # e.g. climbing or descending steeply at low forward speed: outside a D435's +-29 deg
         "collider_moved_out_of_view": count(lambda e: not e["collider_moved_in_view"]),
     }
-    for name, pick in (("saw", lambda e: e["collider_saw_partner"]), ("did_not_see", lambda e: not e["collider_saw_partner"])):
+    for name, pick in (("saw", lambda e: e["collider_saw_partner"]),
+                       ("did_not_see", lambda e: not e["collider_saw_partner"])):
         speeds = [e["speed_m_s"] for e in events if pick(e)]
         out[f"median_speed_when_{name}_m_s"] = float(np.median(speeds)) if speeds else float("nan")
-    out["median_closing_speed_m_s"] = float(np.median([e["closing_speed_m_s"] for e in events])) if events else float("nan")
+    closing = [e["closing_speed_m_s"] for e in events]
+    out["median_closing_speed_m_s"] = float(np.median(closing)) if closing else float("nan")
+    # Of the collisions the collider saw coming: how early it first saw the partner and what it did with its speed.
+    saw = [e for e in events if e["collider_saw_partner"]]
+    out[f"saw_with_warning_at_least_{WARNING_LONG_S:g}_s"] = count(
+        lambda e: e["collider_saw_partner"] and e["warning_s"] >= WARNING_LONG_S)
+    out["median_warning_when_saw_s"] = float(np.median([e["warning_s"] for e in saw])) if saw else float("nan")
+    out["median_speed_change_when_saw_m_s"] = (float(np.median([e["speed_m_s"] - e["speed_at_first_sight_m_s"]
+                                                                 for e in saw])) if saw else float("nan"))
     edges = (0.0, *TIME_BINS_S, math.inf)
     for lo, hi in zip(edges[:-1], edges[1:]):
         out[f"time_{lo:g}_{hi:g}_s"] = count(lambda e, lo=lo, hi=hi: lo < e["time_s"] <= hi)
@@ -286,6 +315,8 @@ def format_table(result: dict) -> str:
             ("partner had already finished (hovering at its goal)", s["with_a_finished_uav"]),
             ("collider was moving outside its camera's view (its velocity's direction)",
              s["collider_moved_out_of_view"])]
+    rows.append((f"collider had it in view and first saw it {WARNING_LONG_S:g} s or more before",
+                 s[f"saw_with_warning_at_least_{WARNING_LONG_S:g}_s"]))
     rows += [(f"collided {k[5:-2].replace('_', '-')} s after the start", v) for k, v in s.items()
              if k.startswith("time_")]
     lines = [f"{result['policy']}: {result['scenario']} ({result['uav_episodes']} UAV-episodes)",
@@ -293,7 +324,10 @@ def format_table(result: dict) -> str:
     lines += [f"| {name} | {v} | {v / total:.2f} | {v / result['uav_episodes']:.3f} |" for name, v in rows]
     lines.append(f"median speed at the collision: {s['median_speed_when_saw_m_s']:.2f} m/s when the collider had "
                  f"the partner in view, {s['median_speed_when_did_not_see_m_s']:.2f} m/s when not; median closing "
-                 f"speed {s['median_closing_speed_m_s']:.2f} m/s")
+                 f"speed {s['median_closing_speed_m_s']:.2f} m/s; when the collider had the partner in view, it "
+                 f"first saw it a median {s['median_warning_when_saw_s']:.1f} s before (looked for up to "
+                 f"{WARNING_WINDOW_S:g} s) and its speed changed by a median "
+                 f"{s['median_speed_change_when_saw_m_s']:+.2f} m/s since")
     b = result["blind_flight"]
     lines.append(f"flight outside the camera's view: {b['blind_share_of_moving_steps']:.3f} of the moving UAV-steps "
                  f"(> {MOVING_M_S:g} m/s), {b['blind_share_of_distance']:.3f} of the distance flown; of those steps "
