@@ -95,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     torch.set_num_threads(args.threads)
     try:
-        build_ensemble(args.policies, args.out)
+        metadata = build_ensemble(args.policies, args.out)
     except (ValueError, OSError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -104,7 +104,8 @@ def main(argv: list[str] | None = None) -> int:
         from sitl.eval.paper import PaperCell  # noqa: PLC0415 - only when evaluating
 
         settings = evaluation_settings(args.eval_episodes)
-        fly_policy_cells([(label, PaperCell(label.replace(":", "-"), "sac_ae", str(args.out), settings[label]))
+        method = metadata["provenance"].get("method", "sac_ae")  # the members' training method labels the cells
+        fly_policy_cells([(label, PaperCell(label.replace(":", "-"), method, str(args.out), settings[label]))
                           for label in args.eval], args.out.parent)
     return 0
 
