@@ -245,35 +245,45 @@ def validate_depth_frame(depth_m: np.ndarray, camera: CameraSpec,
 
 
 class DepthFrameStack:
-    """The last ``frames`` depth images of ``num_stacks`` cameras, oldest first.
+    """The policy's depth input for ``num_stacks`` cameras: ``frames`` images, oldest first.
 
-    Stored as one float32 array [num_stacks, frames, H, W] that is the policy's ``depth``
-    input as-is. After a reset the stack is filled with copies of the first frame, so a
-    freshly started vehicle has a full observation at once.
+    Consecutive stacked images are ``camera.frame_stride`` pushes apart, so the stack remembers
+    the last ``camera.history_frames`` images and :attr:`frames` picks every ``frame_stride``-th
+    of them, ending with the newest. After a reset the history is filled with copies of the first
+    frame, so a freshly started vehicle has a full observation at once.
     """
 
     def __init__(self, num_stacks: int, camera: CameraSpec) -> None:
         self.camera = camera
-        self.frames = np.full(
-            (num_stacks, camera.frames, camera.height, camera.width), camera.max_range_m, dtype=np.float32
+        self.history = np.full(
+            (num_stacks, camera.history_frames, camera.height, camera.width), camera.max_range_m, dtype=np.float32
         )
+
+    @property
+    def frames(self) -> np.ndarray:
+        """The policy's ``depth`` input [num_stacks, frames, H, W] (oldest first): the history itself
+        (a view) for consecutive frames, else a copy of every ``frame_stride``-th image."""
+        stride = self.camera.frame_stride
+        if stride == 1:
+            return self.history
+        return np.ascontiguousarray(self.history[:, ::stride])
 
     def reset(self, first_frame: np.ndarray, index: np.ndarray | slice = slice(None)) -> None:
         """Fill the stacks at ``index`` with ``first_frame`` ([k, H, W] or [H, W])."""
-        self.frames[index] = np.asarray(first_frame, dtype=np.float32)[..., None, :, :]
+        self.history[index] = np.asarray(first_frame, dtype=np.float32)[..., None, :, :]
 
     def push(self, frame: np.ndarray, index: np.ndarray | slice = slice(None)) -> None:
         """Append the newest frame ([k, H, W] or [H, W]) to the stacks at ``index``."""
         if isinstance(index, slice) and index == slice(None):
-            self.frames[:, :-1] = self.frames[:, 1:]
-            self.frames[:, -1] = frame
+            self.history[:, :-1] = self.history[:, 1:]
+            self.history[:, -1] = frame
         else:
-            rolled = self.frames[index]
+            rolled = self.history[index]
             rolled[:, :-1] = rolled[:, 1:]
             rolled[:, -1] = frame
-            self.frames[index] = rolled
+            self.history[index] = rolled
 
     @property
     def latest(self) -> np.ndarray:
         """The newest frame of every stack, [num_stacks, H, W] (a view)."""
-        return self.frames[:, -1]
+        return self.history[:, -1]

@@ -14,7 +14,7 @@ action bounds. Normalisation happens inside the module, so callers pass raw metr
 
     {
       "format_version": 2,
-      "depth": {"height": 32, "width": 48, "frames": 3, "hfov_deg": 87.0, "vfov_deg": 58.0,
+      "depth": {"height": 32, "width": 48, "frames": 3, "frame_stride": 1, "hfov_deg": 87.0, "vfov_deg": 58.0,
                 "mount_pitch_deg": 0.0, "min_range_m": 0.2, "max_range_m": 10.0,
                 "invalid_value_m": 0.0, "invalid_reads_as": "max_range_m",
                 "units": "m", "kind": "planar", "order": "oldest_first"},
@@ -61,6 +61,7 @@ from companion.spec import (
     POLICY_MAX_RANGE_M,
     DEFAULT_TASK_SPEC,
     INVALID_DEPTH_M,
+    MAX_FRAME_STRIDE,
     MAX_MOUNT_PITCH_DEG,
     STATE_NAMES,
     ActionSpec,
@@ -91,6 +92,7 @@ def build_metadata(camera: CameraSpec, action: ActionSpec, control_period_s: flo
         "format_version": FORMAT_VERSION,
         "depth": {
             "height": camera.height, "width": camera.width, "frames": camera.frames,
+            "frame_stride": camera.frame_stride,
             "hfov_deg": camera.hfov_deg, "vfov_deg": round(camera.vertical_fov_deg, 6),
             "mount_pitch_deg": camera.mount_pitch_deg,
             "min_range_m": camera.min_range_m, "max_range_m": camera.max_range_m,
@@ -245,11 +247,13 @@ def _check_metadata(meta: object, path: str) -> tuple[CameraSpec, ActionSpec, fl
     height = _integer(depth["height"], path, "depth height", 1, side)
     width = _integer(depth["width"], path, "depth width", 1, side)
     frames = _integer(depth["frames"], path, "depth frames", 1, POLICY_MAX_FRAMES)
+    # Optional (files written before it existed stack consecutive frames).
+    geometry = {"frame_stride": _integer(depth.get("frame_stride", 1), path, "depth frame_stride", 1,
+                                         MAX_FRAME_STRIDE)}
     hfov_deg = _finite_number(depth["hfov_deg"], path, "depth hfov_deg")
     max_range_m = _finite_number(depth["max_range_m"], path, "depth max_range_m")
     _require(0 < max_range_m <= POLICY_MAX_RANGE_M, path,
              f"depth max_range_m must be in (0, {POLICY_MAX_RANGE_M:g}] m, file says {max_range_m:g}")
-    geometry = {}
     if version >= 2:
         for key in ("vfov_deg", "mount_pitch_deg", "min_range_m", "invalid_value_m", "invalid_reads_as"):
             _require(key in depth, path, f"policy.json depth lacks the field {key!r} (required by format version 2)")

@@ -211,7 +211,7 @@ class Companion:
         self.latest_fault: DepthFault | None = None
         self._last_pushed_s = -math.inf  # when the stack last fed the policy
         self._last_stacked_arrival_s = -math.inf  # arrival time of the newest frame in the stack
-        self._stack_seqs: list[int] = []  # the frames' seq numbers in the stack, oldest first (logged)
+        self._stack_seqs: list[int] = []  # seq numbers of the stack's frame history, oldest first (logged)
         self._hold_point: tuple[np.ndarray, float] | None = None  # (goal NED, yaw) held at the goal
         self._last_hold_reason: str | None = None
         self._last_mode: tuple[int, bool] | None = None
@@ -726,7 +726,7 @@ class Companion:
         # something training never shows (the simulator renders a new frame every step).
         if now - self._last_pushed_s > self.stale_s:
             self.stack.reset(frame.depth_m)
-            self._stack_seqs = [frame.seq] * self.policy.camera.frames
+            self._stack_seqs = [frame.seq] * self.policy.camera.history_frames
             info["stacked"] = "reset"
         elif frame.arrival_s > self._last_stacked_arrival_s:
             self.stack.push(frame.depth_m)
@@ -735,7 +735,7 @@ class Companion:
         else:
             info["stacked"] = "kept"  # the camera missed this period: no new frame to add
         self._last_stacked_arrival_s = max(self._last_stacked_arrival_s, frame.arrival_s)
-        info["stack_seqs"] = list(self._stack_seqs)
+        info["stack_seqs"] = self._stack_seqs[::self.policy.camera.frame_stride]  # the frames the policy sees
         self._last_pushed_s = now
         state = build_state(odom.pos_ned[None], np.array([odom.yaw_rad]), odom.vel_ned[None],
                             np.array([odom.yaw_rate_rad_s]), self.goal_ned[None])

@@ -128,6 +128,7 @@ class CameraSpec:
     vfov_deg: float | None = None  # None: square pixels (derived from hfov and aspect)
     mount_pitch_deg: float = 0.0  # optical axis above (+) / below (-) the heading frame's forward axis
     min_range_m: float = 0.0  # nearer returns are invalid on the sensor (0 m: an ideal camera)
+    frame_stride: int = 1  # control steps between two stacked frames (1: consecutive frames)
 
     def __post_init__(self) -> None:
         if self.width < 1 or self.height < 1:
@@ -146,6 +147,14 @@ class CameraSpec:
                              f"got {self.mount_pitch_deg}")
         if self.frames < 1:
             raise ValueError(f"camera frames must be >= 1, got {self.frames}")
+        if not 1 <= self.frame_stride <= MAX_FRAME_STRIDE:
+            raise ValueError(f"camera frame_stride must be in [1, {MAX_FRAME_STRIDE}], got {self.frame_stride}")
+
+    @property
+    def history_frames(self) -> int:
+        """Frames a stack must remember to serve one observation: the oldest stacked frame is
+        ``(frames - 1) * frame_stride`` control steps before the newest."""
+        return (self.frames - 1) * self.frame_stride + 1
 
     @property
     def tan_half_hfov(self) -> float:
@@ -169,6 +178,9 @@ class CameraSpec:
     def to_dict(self) -> dict:
         return asdict(self)
 
+
+#: Largest number of control steps between two stacked frames a spec or a policy file may declare.
+MAX_FRAME_STRIDE = 10
 
 #: Largest camera mount pitch (deg) a spec or a policy file may declare: beyond it the camera
 #: looks at the ground or the sky rather than ahead.

@@ -121,6 +121,20 @@ def test_frame_stack_is_oldest_first():
     assert stack.latest[1, 0, 0] == 3.0
 
 
+def test_frame_stack_with_a_stride_spans_longer():
+    spec = CameraSpec(width=2, height=2, frames=3, frame_stride=3)
+    assert spec.history_frames == 7
+    stack = DepthFrameStack(1, spec)
+    stack.reset(np.full((2, 2), 0.0))
+    for value in range(1, 9):
+        stack.push(np.full((2, 2), float(value)))
+        # The newest frame, the one 3 pushes before it and the one 6 before (0: the first frame).
+        assert stack.frames[0, :, 0, 0].tolist() == [max(value - 6, 0), max(value - 3, 0), value]
+    assert stack.frames.shape == (1, 3, 2, 2) and stack.latest[0, 0, 0] == 8.0
+    with pytest.raises(ValueError, match="frame_stride"):
+        CameraSpec(frame_stride=0)
+
+
 def test_action_spec_clips_and_rejects_nan():
     spec = DEFAULT_ACTION_SPEC
     clipped = spec.validate(np.array([[3.0, -1.0, 0.7], [-1.0, 0.2, -0.9]]))

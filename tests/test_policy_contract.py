@@ -34,7 +34,7 @@ def test_exported_policy_matches_the_agent_and_carries_metadata(agent, tmp_path)
     np.testing.assert_allclose(policy.act(depth, state), agent.act(depth, state, explore=False), atol=1e-5)
     meta = policy.metadata
     assert meta["format_version"] == FORMAT_VERSION
-    assert meta["depth"] == {"height": 16, "width": 16, "frames": 3, "hfov_deg": 90.0, "vfov_deg": 90.0,
+    assert meta["depth"] == {"height": 16, "width": 16, "frames": 3, "frame_stride": 1, "hfov_deg": 90.0, "vfov_deg": 90.0,
                              "mount_pitch_deg": 0.0, "min_range_m": 0.0, "max_range_m": 20.0,
                              "invalid_value_m": 0.0, "invalid_reads_as": "max_range_m",
                              "units": "m", "kind": "planar", "order": "oldest_first"}
@@ -337,6 +337,12 @@ def test_version_2_camera_geometry_round_trips(tmp_path):
     pitched = dataclasses.replace(REALSENSE_D435, mount_pitch_deg=-7.5)
     save_policy(_Const(0.0), build_metadata(pitched, DEFAULT_ACTION_SPEC, 0.1, {}), path)
     assert load_policy(path).camera.mount_pitch_deg == -7.5
+    strided = dataclasses.replace(REALSENSE_D435, frame_stride=3)
+    save_policy(_Const(0.0), build_metadata(strided, DEFAULT_ACTION_SPEC, 0.1, {}), path)
+    assert load_policy(path).camera == strided
+    older = _meta()  # files written before frame_stride existed stack consecutive frames
+    del older["depth"]["frame_stride"]
+    assert load_policy(_write_raw(tmp_path / "older.pt", older)).camera.frame_stride == 1
 
 
 @pytest.mark.parametrize("changes, reason", [
@@ -346,6 +352,8 @@ def test_version_2_camera_geometry_round_trips(tmp_path):
     ({"depth.min_range_m": 30.0}, "min_range_m must be in"),
     ({"depth.invalid_value_m": 65.535}, "invalid-pixel convention 65.535"),
     ({"depth.invalid_reads_as": "zero"}, "invalid-pixel convention 0 -> 'zero'"),
+    ({"depth.frame_stride": 0}, "depth frame_stride must be in 1..10"),
+    ({"depth.frame_stride": 2.5}, "depth frame_stride must be an integer"),
 ])
 def test_bad_version_2_camera_fields_are_refused(tmp_path, changes, reason):
     with pytest.raises(PolicyFileError, match=reason):

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 
+from companion.observation import DepthFrameStack
 from companion.spec import DEFAULT_ACTION_SPEC, CameraSpec
 from sitl.learn.agent import AgentConfig, SacAeAgent
 from sitl.learn.buffer import FrameReplayBuffer
@@ -42,6 +43,42 @@ def test_buffer_rebuilds_stacks_from_frames_stored_once():
         assert not_done.item() == (0.0 if (offset == 100 and t == 5) else 1.0)
     # One frame per transition plus one per episode start: 10 frames, not 10 x 6.
     assert buf._next_frame == 10
+
+
+@pytest.mark.parametrize("stride", [1, 3])
+def test_buffer_gives_back_the_observations_the_frame_stack_gave_the_policy(stride):
+    """The replay buffer rebuilds each transition's stacks (n-step included) exactly as the
+    environment's DepthFrameStack built them, episode starts included, for any frame stride."""
+    camera = CameraSpec(width=1, height=1, frames=3, frame_stride=stride)
+    stack = DepthFrameStack(2, camera)
+    buf = FrameReplayBuffer(capacity=500, num_agents=2, frames=3, height=1, width=1, state_dim=6, action_dim=3,
+                            frame_stride=stride)
+    rng = np.random.default_rng(0)
+    seen: dict[int, tuple[list, list]] = {}  # transition id -> (obs, next obs) as the policy saw them
+    value = 0.0
+    fresh = lambda: np.array([[[value]]], dtype=np.float32)  # noqa: E731
+    for agent in (0, 1):
+        value += 1
+        stack.reset(fresh(), np.array([agent]))
+        buf.start_episodes(np.array([agent]), fresh())
+    for step in range(120):
+        for agent in (0, 1):  # one agent at a time, so each row is one transition with its own id
+            obs = stack.frames[agent, :, 0, 0].tolist()
+            value += 1
+            stack.push(fresh(), np.array([agent]))
+            ends = bool(rng.random() < 0.08)
+            tid = 1000 * step + agent
+            seen[tid] = (obs, stack.frames[agent, :, 0, 0].tolist())
+            buf.add(np.array([agent]), np.zeros((1, 6)), np.zeros((1, 3)), np.array([tid]), fresh()[0][None],
+                    np.zeros((1, 6)), np.array([ends]))
+            if ends:
+                value += 1
+                stack.reset(fresh(), np.array([agent]))
+                buf.start_episodes(np.array([agent]), fresh())
+    batch = buf.sample(300, torch.device("cpu"))
+    for depth, next_depth, tid in zip(batch["depth"], batch["next_depth"], batch["reward"][:, 0]):
+        obs, next_obs = seen[int(tid)]
+        assert depth[:, 0, 0].tolist() == obs and next_depth[:, 0, 0].tolist() == next_obs
 
 
 def test_a_checkpoint_holds_only_the_filled_part_of_a_big_buffer_and_resumes(tmp_path):

@@ -23,14 +23,19 @@ class FrameReplayBuffer:
     """Transitions of many agents sharing one policy (centralised training, paper Alg. 1)."""
 
     def __init__(self, capacity: int, num_agents: int, frames: int, height: int, width: int, state_dim: int,
-                 action_dim: int, seed: int = 0, privileged_dim: int = 0) -> None:
+                 action_dim: int, seed: int = 0, privileged_dim: int = 0, frame_stride: int = 1) -> None:
         """``privileged_dim`` > 0: every transition also keeps the critic's privileged input for its
-        observation and its next one (asymmetric critic, :mod:`sitl.learn.privileged`)."""
+        observation and its next one (asymmetric critic, :mod:`sitl.learn.privileged`).
+        ``frame_stride``: steps between two stacked frames (``CameraSpec.frame_stride``)."""
         self.capacity = capacity
         self.frames_per_obs = frames
-        self.frame_capacity = 2 * capacity + 8 * num_agents
+        self.frame_stride = frame_stride
+        history = (frames - 1) * frame_stride + 1  # frames an agent's observation reaches back over
+        self.frame_capacity = 2 * capacity + (8 + history) * num_agents
         self.frame_store = np.zeros((self.frame_capacity, height, width), dtype=np.float16)
-        self.frame_index = np.zeros((capacity, frames + 1), dtype=np.int64)  # obs frames, then the new one
+        # The agent's frame history before the step, then the new frame: the observation is every
+        # frame_stride-th of the first `history` columns, the next one the same from column 1 on.
+        self.frame_index = np.zeros((capacity, history + 1), dtype=np.int64)
         self.state = np.zeros((capacity, state_dim), dtype=np.float32)
         self.next_state = np.zeros((capacity, state_dim), dtype=np.float32)
         self.action = np.zeros((capacity, action_dim), dtype=np.float32)
@@ -51,7 +56,7 @@ class FrameReplayBuffer:
         self._next_frame = 0
         self._frames_stored = 0  # frames ever stored: until it reaches frame_capacity, the ring's tail is unused
         self._inserted = 0
-        self.agent_stack = np.zeros((num_agents, frames), dtype=np.int64)  # each agent's current obs frames
+        self.agent_stack = np.zeros((num_agents, history), dtype=np.int64)  # each agent's current frame history
         self.agent_last_row = np.full(num_agents, -1, dtype=np.int64)  # its previous transition this episode
         self.rng = np.random.default_rng(seed)
 
@@ -152,9 +157,9 @@ class FrameReplayBuffer:
             last = np.where(extending, nxt, last)
             reward += np.where(extending, factor * self.reward[last, 0], 0.0)
         discount = factor * gamma * self.not_done[last, 0]
-        k = self.frames_per_obs
-        obs_frames = self.frame_store[self.frame_index[rows, :k]]
-        next_frames = self.frame_store[self.frame_index[last, 1:]]
+        stride, history = self.frame_stride, self.frame_index.shape[1] - 1
+        obs_frames = self.frame_store[self.frame_index[rows, :history:stride]]
+        next_frames = self.frame_store[self.frame_index[last, 1::stride]]
         to = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)).to(device)  # noqa: E731
         batch = {
             "depth": to(obs_frames),

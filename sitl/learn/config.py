@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from companion.spec import CAMERA_PRESETS, DEFAULT_TASK_SPEC, CameraSpec
+from companion.spec import CAMERA_PRESETS, DEFAULT_TASK_SPEC, MAX_FRAME_STRIDE, CameraSpec
 from sitl.cli_args import MAX_THREADS
 from sitl.learn.agent import METHODS, AgentConfig
 from sitl.sim.camera import StereoNoise
@@ -73,6 +73,8 @@ class TrainConfig:
                                   "0.2-10 m; docs/simulator.md)")
     camera_noise: bool = _param(False, "train with the stereo noise model (z^2 error, holes reported as 0)")
     mount_pitch_jitter_deg: float = _param(0.0, "camera mount pitch drawn per episode within +-deg of the mount")
+    frame_stride: int = _param(1, "control steps between two of the 3 stacked depth frames (1: consecutive, the "
+                                  "paper; 3: the stack spans 0.6 s; docs/training.md 'A longer frame stack')")
     avoid_counts_ground: bool = _param(False, "eq. 4's d_min counts the ground, as in the paper (default: UAVs and "
                                               "obstacles only; docs/training.md)")
     collision_reward: float = _param(RewardConfig.r_collision,
@@ -190,7 +192,7 @@ class TrainConfig:
 
 #: (field, lowest, highest) of TrainConfig's integers.
 TRAIN_INT_RANGES = (
-    ("num_uavs", 1, 1000), ("num_worlds", 1, 1000), ("image_size", 1, 256), ("max_episode_steps", 1, 100_000),
+    ("num_uavs", 1, 1000), ("num_worlds", 1, 1000), ("frame_stride", 1, MAX_FRAME_STRIDE), ("image_size", 1, 256), ("max_episode_steps", 1, 100_000),
     ("batch_size", 1, 100_000), ("replay_capacity", 1, 10_000_000), ("max_episodes", 0, 10**9),
     ("total_updates", 0, 10**9), ("updates_per_episode", 0, 1_000_000), ("init_steps", 0, 10**9),
     ("eval_every_updates", 0, 10**9), ("eval_episodes", 1, 1_000_000), ("final_eval_episodes", 0, 1_000_000),
@@ -348,10 +350,11 @@ def make_sim_config(cfg: TrainConfig, num_worlds: int, record_paths: bool = Fals
 
 
 def training_camera(cfg: TrainConfig) -> CameraSpec:
-    """The camera a run trains with: its preset (the paper camera at ``image_size`` pixels a side)."""
+    """The camera a run trains with: its preset (the paper camera at ``image_size`` pixels a side),
+    its frames stacked ``frame_stride`` steps apart."""
     if cfg.camera == "paper":
-        return CameraSpec(width=cfg.image_size, height=cfg.image_size)
-    return CAMERA_PRESETS[cfg.camera]
+        return CameraSpec(width=cfg.image_size, height=cfg.image_size, frame_stride=cfg.frame_stride)
+    return dataclasses.replace(CAMERA_PRESETS[cfg.camera], frame_stride=cfg.frame_stride)
 
 
 def evaluation_scenarios(cfg: TrainConfig) -> tuple[str, ...]:

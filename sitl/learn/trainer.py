@@ -191,7 +191,8 @@ def make_buffer(cfg: TrainConfig, env: SwarmEnv, privileged_dim: int = 0) -> Fra
     """The replay buffer for ``env``'s UAVs and camera (``privileged_dim``: an asymmetric critic's extra input)."""
     cam = env.config.camera
     return FrameReplayBuffer(cfg.replay_capacity, env.num_agents, cam.frames, cam.height, cam.width,
-                             STATE_DIM, DEFAULT_ACTION_SPEC.dim, seed=cfg.seed, privileged_dim=privileged_dim)
+                             STATE_DIM, DEFAULT_ACTION_SPEC.dim, seed=cfg.seed, privileged_dim=privileged_dim,
+                             frame_stride=cam.frame_stride)
 
 
 def make_trainer(cfg: TrainConfig, agent_cfg: AgentConfig, run_dir: Path, resume: bool = False) -> "Trainer":

@@ -115,7 +115,7 @@ class SwarmEnv:
         return placed_boxes | (self.cylinders != DISABLED_CYLINDER).any(axis=2).any(axis=1)
 
     def observation(self) -> Observation:
-        """The current observation of every UAV (a fresh state array; depth is a view)."""
+        """The current observation of every UAV (a fresh state array; depth is a view for consecutive frames)."""
         d = self.dynamics
         state = build_state(d.pos_ned, d.yaw_rad, d.vel_ned, d.yaw_rate_rad_s, self.goal_ned)
         return Observation(self.frames.frames, state)
