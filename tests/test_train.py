@@ -81,6 +81,29 @@ def test_buffer_gives_back_the_observations_the_frame_stack_gave_the_policy(stri
         assert depth[:, 0, 0].tolist() == obs and next_depth[:, 0, 0].tolist() == next_obs
 
 
+def test_the_approach_to_a_collision_is_marked_and_oversampled():
+    """Agent 1 collides at its 8th step: its last 3 transitions are marked (not agent 0's, not the
+    earlier ones); a batch with precollision_fraction 0.5 draws half its rows from them."""
+    buf = FrameReplayBuffer(capacity=100, num_agents=2, frames=3, height=1, width=1, state_dim=6, action_dim=3,
+                            precollision_steps=3)
+    frame = np.zeros((2, 1, 1), dtype=np.float32)
+    buf.start_episodes(np.array([0, 1]), frame)
+    for t in range(8):
+        hit = np.array([False, t == 7])
+        buf.add(np.array([0, 1]), np.zeros((2, 6)), np.zeros((2, 3)), np.array([t, 100 + t]), frame, np.zeros((2, 6)),
+                hit, collided=hit)
+    buf.start_episodes(np.array([1]), frame[:1])
+    buf.add(np.array([0, 1]), np.zeros((2, 6)), np.zeros((2, 3)), np.array([8, 200]), frame, np.zeros((2, 6)),
+            np.array([False, False]), collided=np.array([False, False]))
+    marked = sorted(buf.reward[: buf.size][buf.precollision[: buf.size], 0].tolist())
+    assert marked == [105.0, 106.0, 107.0]
+    rewards = buf.sample(200, torch.device("cpu"), precollision_fraction=0.5)["reward"][:, 0]
+    assert set(rewards[:100].tolist()) == {105.0, 106.0, 107.0}
+    assert 30 < (rewards[100:] < 100).sum() < 70  # the rest uniform over all 18 rows (9 of agent 0)
+    uniform = buf.sample(200, torch.device("cpu"))["reward"][:, 0]
+    assert np.isin(uniform.numpy(), [105.0, 106.0, 107.0]).mean() < 0.35
+
+
 def test_a_checkpoint_holds_only_the_filled_part_of_a_big_buffer_and_resumes(tmp_path):
     """Issue 16: capacity 200,000 holding 176 transitions wrote 905 MB; now the checkpoint is the 176 transitions."""
     def make():

@@ -23,10 +23,13 @@ class FrameReplayBuffer:
     """Transitions of many agents sharing one policy (centralised training, paper Alg. 1)."""
 
     def __init__(self, capacity: int, num_agents: int, frames: int, height: int, width: int, state_dim: int,
-                 action_dim: int, seed: int = 0, privileged_dim: int = 0, frame_stride: int = 1) -> None:
+                 action_dim: int, seed: int = 0, privileged_dim: int = 0, frame_stride: int = 1,
+                 precollision_steps: int = 0) -> None:
         """``privileged_dim`` > 0: every transition also keeps the critic's privileged input for its
         observation and its next one (asymmetric critic, :mod:`sitl.learn.privileged`).
-        ``frame_stride``: steps between two stacked frames (``CameraSpec.frame_stride``)."""
+        ``frame_stride``: steps between two stacked frames (``CameraSpec.frame_stride``).
+        ``precollision_steps`` > 0: a UAV's last that many transitions before a collision are marked,
+        and :meth:`sample` can draw part of a batch from them (``precollision_fraction``)."""
         self.capacity = capacity
         self.frames_per_obs = frames
         self.frame_stride = frame_stride
@@ -58,6 +61,11 @@ class FrameReplayBuffer:
         self._inserted = 0
         self.agent_stack = np.zeros((num_agents, history), dtype=np.int64)  # each agent's current frame history
         self.agent_last_row = np.full(num_agents, -1, dtype=np.int64)  # its previous transition this episode
+        # Each agent's last precollision_steps rows this episode (oldest first, -1: none) with their
+        # stamps, so that a collision marks only rows that still hold that agent's transitions.
+        self.precollision = np.zeros(capacity, dtype=bool)
+        self.agent_recent = np.full((num_agents, precollision_steps), -1, dtype=np.int64)
+        self.agent_recent_stamp = np.full((num_agents, precollision_steps), -2, dtype=np.int64)
         self.rng = np.random.default_rng(seed)
 
     @property
@@ -81,11 +89,13 @@ class FrameReplayBuffer:
         idx = self._store_frames(first_frames)
         self.agent_stack[agents] = idx[:, None]
         self.agent_last_row[agents] = -1
+        self.agent_recent[agents] = -1
 
     def add(self, agents: np.ndarray, state: np.ndarray, action: np.ndarray, reward: np.ndarray,
             next_frames: np.ndarray, next_state: np.ndarray, terminated: np.ndarray,
             teacher_action: np.ndarray | None = None, teacher_valid: np.ndarray | None = None,
-            privileged: np.ndarray | None = None, next_privileged: np.ndarray | None = None) -> None:
+            privileged: np.ndarray | None = None, next_privileged: np.ndarray | None = None,
+            collided: np.ndarray | None = None) -> None:
         """Store one step of the agents in ``agents`` (all arrays have one row per agent listed).
 
         ``terminated`` means the episode truly ended (arrival or collision): no bootstrap.
@@ -93,7 +103,8 @@ class FrameReplayBuffer:
         ``teacher_action``: a teacher's action in [-1, 1] for the same observation, where
         ``teacher_valid`` (default: everywhere it is given; nowhere without it).
         ``privileged``/``next_privileged``: the critic's extra input before and after the step
-        (required when the buffer was built with ``privileged_dim`` > 0).
+        (required when the buffer was built with ``privileged_dim`` > 0). ``collided``: the agents
+        whose step ended in a collision (marks their approach when ``precollision_steps`` > 0).
         """
         count = len(agents)
         if count == 0:
@@ -126,13 +137,25 @@ class FrameReplayBuffer:
         self.successor[previous[linked]] = rows[linked]
         self.successor_stamp[previous[linked]] = stamps[linked]
         self.agent_last_row[agents] = np.where(terminated, -1, rows)
+        self.precollision[rows] = False  # overwritten rows lose an old mark
+        if self.agent_recent.shape[1]:
+            self.agent_recent[agents] = np.concatenate([self.agent_recent[agents, 1:], rows[:, None]], axis=1)
+            self.agent_recent_stamp[agents] = np.concatenate([self.agent_recent_stamp[agents, 1:], stamps[:, None]],
+                                                             axis=1)
+            if collided is not None and collided.any():
+                recent, recent_stamp = self.agent_recent[agents[collided]], self.agent_recent_stamp[agents[collided]]
+                valid = (recent >= 0) & (self.stamp[np.maximum(recent, 0)] == recent_stamp)
+                self.precollision[recent[valid]] = True
         self._inserted += count
         self._next = (self._next + count) % self.capacity
         self.size = min(self.size + count, self.capacity)
 
     def sample(self, batch_size: int, device: torch.device, n_step: int = 1, gamma: float = 0.99,
-               with_teacher: bool = False) -> dict[str, torch.Tensor]:
+               with_teacher: bool = False, precollision_fraction: float = 0.0) -> dict[str, torch.Tensor]:
         """A uniform batch; depth comes back as float32 metres [B, k, H, W].
+
+        ``precollision_fraction``: that share of the batch is drawn uniformly from the transitions
+        marked as a collision's approach (while there are any), the rest uniformly from all.
 
         ``with_teacher``: the batch also carries ``teacher_action`` and ``teacher_valid``. A buffer
         with privileged inputs adds ``privileged`` (of the observation) and ``next_privileged`` (of
@@ -143,6 +166,11 @@ class FrameReplayBuffer:
         ``discount`` is ``gamma^m`` (0 after a terminal step) for the ``m`` steps taken.
         """
         rows = self.rng.integers(0, self.size, size=batch_size)
+        if precollision_fraction > 0:
+            marked = np.flatnonzero(self.precollision[: self.size])
+            hot = min(int(round(precollision_fraction * batch_size)), batch_size) if len(marked) else 0
+            if hot:
+                rows[:hot] = marked[self.rng.integers(0, len(marked), size=hot)]
         last = rows.copy()
         reward = self.reward[rows, 0].astype(np.float64)
         factor = np.ones(batch_size)
@@ -179,7 +207,8 @@ class FrameReplayBuffer:
 
     #: Arrays with one row per transition; rows 0 .. size - 1 are the filled ones (rows fill in order).
     _ROW_ARRAYS = ("frame_index", "state", "next_state", "action", "reward", "not_done", "stamp", "successor",
-                   "successor_stamp", "teacher_action", "teacher_valid", "privileged", "next_privileged")
+                   "successor_stamp", "teacher_action", "teacher_valid", "privileged", "next_privileged",
+                   "precollision")
 
     def state_dict(self) -> dict:
         """Everything needed to resume, with only the *filled* part of the preallocated arrays.

@@ -96,6 +96,10 @@ class TrainConfig:
                                          f"{DEFAULT_TASK_SPEC.max_episode_steps})")
     batch_size: int = _param(128, "Table I: batch size")
     replay_capacity: int = _param(50_000, "transitions kept (Table I: 20000)")
+    precollision_steps: int = _param(0, "mark each UAV's last this many transitions before a collision in the replay "
+                                        "buffer (0: none; docs/training.md 'Replaying the approach to a collision')")
+    precollision_fraction: float = _param(0.0, "share of every batch drawn from the marked transitions (0: uniform "
+                                               "batches, as in the paper)")
     max_episodes: int = _param(0, "stop after this many world episodes (0: no limit; Table I: 200)")
     total_updates: int = _param(25_000, "stop after this many gradient updates (0: no limit)")
     updates_per_episode: int = _param(0, "updates owed per finished world episode (Table I: 400)")
@@ -162,6 +166,10 @@ class TrainConfig:
             raise ValueError(f"mount_pitch_jitter_deg must be in [0, 30], got {self.mount_pitch_jitter_deg}")
         if not 0.0 <= self.yaw_jitter_deg <= 180.0:
             raise ValueError(f"yaw_jitter_deg must be in [0, 180], got {self.yaw_jitter_deg}")
+        if not 0.0 <= self.precollision_fraction <= 1.0:
+            raise ValueError(f"precollision_fraction must be in [0, 1], got {self.precollision_fraction}")
+        if self.precollision_fraction > 0 and self.precollision_steps == 0:
+            raise ValueError("precollision_fraction > 0 needs precollision_steps > 0 (no transition would be marked)")
         if not 0.0 <= self.updates_per_env_step <= 10_000.0:
             raise ValueError(f"updates_per_env_step must be in [0, 10000], got {self.updates_per_env_step}")
         if not -1_000.0 <= self.collision_reward <= 0.0:
@@ -193,7 +201,7 @@ class TrainConfig:
 #: (field, lowest, highest) of TrainConfig's integers.
 TRAIN_INT_RANGES = (
     ("num_uavs", 1, 1000), ("num_worlds", 1, 1000), ("frame_stride", 1, MAX_FRAME_STRIDE), ("image_size", 1, 256), ("max_episode_steps", 1, 100_000),
-    ("batch_size", 1, 100_000), ("replay_capacity", 1, 10_000_000), ("max_episodes", 0, 10**9),
+    ("batch_size", 1, 100_000), ("replay_capacity", 1, 10_000_000), ("precollision_steps", 0, 1000), ("max_episodes", 0, 10**9),
     ("total_updates", 0, 10**9), ("updates_per_episode", 0, 1_000_000), ("init_steps", 0, 10**9),
     ("eval_every_updates", 0, 10**9), ("eval_episodes", 1, 1_000_000), ("final_eval_episodes", 0, 1_000_000),
     ("seed", 0, 2**32 - 1), ("threads", 1, MAX_THREADS), ("vae_images", 1, 10_000_000), ("vae_epochs", 1, 100_000),

@@ -192,7 +192,7 @@ def make_buffer(cfg: TrainConfig, env: SwarmEnv, privileged_dim: int = 0) -> Fra
     cam = env.config.camera
     return FrameReplayBuffer(cfg.replay_capacity, env.num_agents, cam.frames, cam.height, cam.width,
                              STATE_DIM, DEFAULT_ACTION_SPEC.dim, seed=cfg.seed, privileged_dim=privileged_dim,
-                             frame_stride=cam.frame_stride)
+                             frame_stride=cam.frame_stride, precollision_steps=cfg.precollision_steps)
 
 
 def make_trainer(cfg: TrainConfig, agent_cfg: AgentConfig, run_dir: Path, resume: bool = False) -> "Trainer":
@@ -466,7 +466,8 @@ class Trainer:
             obs, reward, terminated, truncated, info = env.step(action)
             next_privileged = env_privileged_features(env)[rows] if agent.privileged_dim else None
             buffer.add(rows, state[rows], agent.to_unit_action(action[rows]), reward[rows], obs.depth[rows, -1],
-                       obs.state[rows], terminated[rows], teacher_action, teacher_valid, privileged, next_privileged)
+                       obs.state[rows], terminated[rows], teacher_action, teacher_valid, privileged, next_privileged,
+                       collided=info["collided"][rows])
             returns += reward
             k["env_steps"] += 1
             k["transitions"] += len(rows)
@@ -502,7 +503,8 @@ class Trainer:
                 bc_weight = self.teacher_weight()  # changes by a few parts in 10^4 over one step's updates
                 for _ in range(todo):
                     latest_losses |= agent.update(buffer.sample(cfg.batch_size, agent.device, agent.config.n_step,
-                                                                agent.config.discount, with_teacher=bc_weight > 0),
+                                                                agent.config.discount, with_teacher=bc_weight > 0,
+                                                                precollision_fraction=cfg.precollision_fraction),
                                                   bc_weight)
                     k["updates"] += 1
                     window_updates += 1
