@@ -200,8 +200,9 @@ class TrainConfig:
 
 #: (field, lowest, highest) of TrainConfig's integers.
 TRAIN_INT_RANGES = (
-    ("num_uavs", 1, 1000), ("num_worlds", 1, 1000), ("frame_stride", 1, MAX_FRAME_STRIDE), ("image_size", 1, 256), ("max_episode_steps", 1, 100_000),
-    ("batch_size", 1, 100_000), ("replay_capacity", 1, 10_000_000), ("precollision_steps", 0, 1000), ("max_episodes", 0, 10**9),
+    ("num_uavs", 1, 1000), ("num_worlds", 1, 1000), ("image_size", 1, 256), ("max_episode_steps", 1, 100_000),
+    ("frame_stride", 1, MAX_FRAME_STRIDE), ("batch_size", 1, 100_000), ("replay_capacity", 1, 10_000_000),
+    ("precollision_steps", 0, 1000), ("max_episodes", 0, 10**9),
     ("total_updates", 0, 10**9), ("updates_per_episode", 0, 1_000_000), ("init_steps", 0, 10**9),
     ("eval_every_updates", 0, 10**9), ("eval_episodes", 1, 1_000_000), ("final_eval_episodes", 0, 1_000_000),
     ("seed", 0, 2**32 - 1), ("threads", 1, MAX_THREADS), ("vae_images", 1, 10_000_000), ("vae_epochs", 1, 100_000),
