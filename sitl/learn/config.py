@@ -74,7 +74,7 @@ class TrainConfig:
     camera_noise: bool = _param(False, "train with the stereo noise model (z^2 error, holes reported as 0)")
     mount_pitch_jitter_deg: float = _param(0.0, "camera mount pitch drawn per episode within +-deg of the mount")
     frame_stride: int = _param(1, "control steps between two of the 3 stacked depth frames (1: consecutive, the "
-                                  "paper; 3: the stack spans 0.6 s; docs/training.md 'A longer frame stack')")
+                                  "paper; 3: the stack spans 0.6 s; docs/training.md 'A frame stack spanning longer')")
     avoid_counts_ground: bool = _param(False, "eq. 4's d_min counts the ground, as in the paper (default: UAVs and "
                                               "obstacles only; docs/training.md)")
     collision_reward: float = _param(RewardConfig.r_collision,
