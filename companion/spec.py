@@ -152,9 +152,8 @@ class CameraSpec:
 
     @property
     def history_frames(self) -> int:
-        """Frames a stack must remember to serve one observation: the oldest stacked frame is
-        ``(frames - 1) * frame_stride`` control steps before the newest."""
-        return (self.frames - 1) * self.frame_stride + 1
+        """Frames a stack must remember to serve one observation (:func:`stack_history_frames`)."""
+        return stack_history_frames(self.frames, self.frame_stride)
 
     @property
     def tan_half_hfov(self) -> float:
@@ -181,6 +180,13 @@ class CameraSpec:
 
 #: Largest number of control steps between two stacked frames a spec or a policy file may declare.
 MAX_FRAME_STRIDE = 10
+
+
+def stack_history_frames(frames: int, frame_stride: int) -> int:
+    """Frames a stack of ``frames`` images ``frame_stride`` control steps apart must remember:
+    the oldest stacked frame is ``(frames - 1) * frame_stride`` steps before the newest."""
+    return (frames - 1) * frame_stride + 1
+
 
 #: Largest camera mount pitch (deg) a spec or a policy file may declare: beyond it the camera
 #: looks at the ground or the sky rather than ahead.

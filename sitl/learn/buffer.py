@@ -18,6 +18,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from companion.spec import stack_history_frames
+
 
 class FrameReplayBuffer:
     """Transitions of many agents sharing one policy (centralised training, paper Alg. 1)."""
@@ -33,7 +35,7 @@ class FrameReplayBuffer:
         self.capacity = capacity
         self.frames_per_obs = frames
         self.frame_stride = frame_stride
-        history = (frames - 1) * frame_stride + 1  # frames an agent's observation reaches back over
+        history = stack_history_frames(frames, frame_stride)  # frames an agent's observation reaches back over
         self.frame_capacity = 2 * capacity + (8 + history) * num_agents
         self.frame_store = np.zeros((self.frame_capacity, height, width), dtype=np.float16)
         # The agent's frame history before the step, then the new frame: the observation is every
