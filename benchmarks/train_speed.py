@@ -15,16 +15,23 @@ RealSense D435 preset's 32x20 grid, 512 hidden units, the decoder every second u
 2026-11-25) and ``env_steps_per_s`` (agent transitions per second while acting), plus every
 configuration measured.
 
+``--copies N`` answers another question: how fast do N runs side by side go (a sweep's seeds on one
+machine, ``python -m sitl.sweep --cpus-per-run``)? It measures the preset's configuration only, in N
+processes at once with ``--threads`` threads each, and the last line's ``updates_per_s`` is their sum
+(``updates_per_s_per_copy`` lists each); no rollouts.
+
 Usage: ``python benchmarks/train_speed.py [--preset flown-fast] [--sizes 32 64 32x20 48x32]
-[--methods sac_ae cnn drq] [--seconds 10] [--smoke]`` (a size is a square side or WIDTHxHEIGHT
-of the preset's field of view; ``--smoke``: the preset's configuration only, no warm-up update,
-a fraction of a second per measurement, and the rollouts reuse that agent; what CI runs.)
+[--methods sac_ae cnn drq] [--seconds 10] [--threads 2] [--copies 1] [--smoke]`` (a size is a
+square side or WIDTHxHEIGHT of the preset's field of view; ``--smoke``: the preset's configuration
+only, no warm-up update, a fraction of a second per measurement, and the rollouts reuse that agent;
+what CI runs.)
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
 import sys
 import time
 from pathlib import Path
@@ -95,6 +102,28 @@ def update_rate(agent: SacAeAgent, seconds: float, warmup_updates: int = 3) -> f
     return count / (time.perf_counter() - started)
 
 
+def copy_update_rate(job: tuple[str, int, float, bool, object]) -> float:
+    """One of ``--copies``' processes: the preset's configuration's update rate at ``threads`` threads.
+
+    ``job`` is (preset, threads, seconds, smoke, barrier); every copy builds its agent and fills its
+    buffer, then waits at the barrier so that the timed updates overlap."""
+    preset, threads, seconds, smoke, barrier = job
+    torch.set_num_threads(threads)
+    cfg, agent_cfg = preset_configs(preset)
+    agent = make_agent(agent_cfg.method, training_camera(cfg), agent_cfg.hidden_dim, agent_cfg)
+    barrier.wait()
+    return update_rate(agent, seconds, warmup_updates=0 if smoke else 3)
+
+
+def side_by_side_rates(preset: str, copies: int, threads: int, seconds: float, smoke: bool) -> list[float]:
+    """Update rates of ``copies`` processes measuring the preset's configuration at the same time."""
+    context = multiprocessing.get_context("spawn")  # fresh interpreters: no torch thread pool inherited
+    with context.Manager() as manager:
+        barrier = manager.Barrier(copies)
+        with context.Pool(copies) as pool:
+            return pool.map(copy_update_rate, [(preset, threads, seconds, smoke, barrier)] * copies)
+
+
 def rollout_rate(seconds: float, agent: SacAeAgent | None = None, cfg: TrainConfig | None = None) -> float:
     """Agent transitions per second while ``cfg``'s worlds (default: the fast preset's) roll out with sampled actions.
 
@@ -126,7 +155,10 @@ def main() -> None:
     parser.add_argument("--hidden", type=int, nargs="+", default=None,
                         help="hidden units (default: the preset's, 1024 and 256)")
     parser.add_argument("--seconds", type=float, default=None, help="seconds per measurement (default 10)")
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=2, help="torch threads per process (default 2)")
+    parser.add_argument("--copies", type=int, default=1,
+                        help="measure the preset's configuration in this many processes at once and report "
+                             "their summed updates/s (runs side by side, as a sweep runs seeds; default 1)")
     parser.add_argument("--smoke", action="store_true",
                         help="CI check: the preset's configuration only, no warm-up, a fraction of a second "
                              "per measurement")
@@ -155,6 +187,17 @@ def main() -> None:
         seconds = 10.0 if args.seconds is None else args.seconds
     if seconds <= 0:
         parser.error(f"--seconds must be > 0, got {seconds}")
+    if args.threads < 1 or args.copies < 1:
+        parser.error(f"--threads and --copies must be >= 1, got {args.threads} and {args.copies}")
+    if args.copies > 1:
+        per_copy = side_by_side_rates(args.preset, args.copies, args.threads, seconds, args.smoke)
+        print(f"{args.copies} copies of {headline} side by side, {args.threads} thread(s) each: "
+              f"{', '.join(f'{rate:.2f}' for rate in per_copy)} updates/s; {sum(per_copy):.2f} in all", flush=True)
+        print(json.dumps({"benchmark": "train_speed", "preset": args.preset, "threads": args.threads,
+                          "copies": args.copies, "updates_per_s": round(sum(per_copy), 2),
+                          "updates_per_s_config": headline,
+                          "updates_per_s_per_copy": [round(rate, 2) for rate in per_copy]}))
+        return
     torch.set_num_threads(args.threads)
 
     rates, headline_agent = {}, None

@@ -56,3 +56,15 @@ def test_smoke_run_prints_a_json_summary_last(script: str):
     except json.JSONDecodeError as exc:
         raise AssertionError(f"{script} --smoke: last line is not JSON ({exc}): {lines[-1]!r}") from None
     assert isinstance(summary, dict) and summary, f"{script} --smoke: last line is not a JSON object: {lines[-1]!r}"
+
+
+def test_train_speed_measures_copies_side_by_side():
+    """``--copies 2``: two processes time the same configuration at once; the headline is their sum."""
+    proc = subprocess.run([sys.executable, str(BENCHMARKS / "train_speed.py"), "--smoke", "--copies", "2",
+                           "--threads", "1"], cwd=REPO, env=env(), capture_output=True, text=True,
+                          timeout=SMOKE_TIMEOUT_S)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads(proc.stdout.strip().splitlines()[-1])
+    per_copy = summary["updates_per_s_per_copy"]
+    assert summary["copies"] == 2 and len(per_copy) == 2 and all(rate > 0 for rate in per_copy)
+    assert summary["updates_per_s"] == pytest.approx(sum(per_copy), abs=0.02)
