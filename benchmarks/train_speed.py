@@ -189,6 +189,8 @@ def main() -> None:
         parser.error(f"--seconds must be > 0, got {seconds}")
     if args.threads < 1 or args.copies < 1:
         parser.error(f"--threads and --copies must be >= 1, got {args.threads} and {args.copies}")
+    if args.copies > 1 and (args.sizes or args.methods or args.hidden):
+        parser.error("--copies measures the preset's configuration only; leave out --sizes, --methods and --hidden")
     if args.copies > 1:
         per_copy = side_by_side_rates(args.preset, args.copies, args.threads, seconds, args.smoke)
         print(f"{args.copies} copies of {headline} side by side, {args.threads} thread(s) each: "
