@@ -189,9 +189,9 @@ def main() -> None:
         parser.error(f"--seconds must be > 0, got {seconds}")
     if args.threads < 1 or args.copies < 1:
         parser.error(f"--threads and --copies must be >= 1, got {args.threads} and {args.copies}")
-    if args.copies > 1 and (args.sizes or args.methods or args.hidden):
-        parser.error("--copies measures the preset's configuration only; leave out --sizes, --methods and --hidden")
     if args.copies > 1:
+        if args.sizes or args.methods or args.hidden:
+            parser.error("--copies measures the preset's configuration only; leave out --sizes, --methods and --hidden")
         per_copy = side_by_side_rates(args.preset, args.copies, args.threads, seconds, args.smoke)
         print(f"{args.copies} copies of {headline} side by side, {args.threads} thread(s) each: "
               f"{', '.join(f'{rate:.2f}' for rate in per_copy)} updates/s; {sum(per_copy):.2f} in all", flush=True)
