@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -15,11 +16,12 @@ import pytest
 import torch
 
 from companion.observation import DepthFrameStack
-from companion.spec import DEFAULT_ACTION_SPEC, CameraSpec
+from companion.spec import CAMERA_PRESETS, DEFAULT_ACTION_SPEC, CameraSpec
 from sitl.learn.agent import AgentConfig, SacAeAgent
 from sitl.learn.buffer import FrameReplayBuffer
 from sitl.learn.vae import train_vae
 from sitl.learn.cli import parse_args
+from sitl.learn.config import training_camera
 from sitl.learn.trainer import snapshot_counters
 
 REPO = Path(__file__).resolve().parent.parent
@@ -199,6 +201,19 @@ def test_presets_and_flags():
     assert cnn.method == "cnn" and cnn.critic_lr == 3e-4
 
 
+def test_camera_grid_changes_the_pixels_not_the_field_of_view():
+    cfg, _, _, _ = parse_args(["--preset", "flown-fast", "--camera-grid", "48x32"])
+    camera, preset = training_camera(cfg), CAMERA_PRESETS["realsense_d435"]
+    assert (camera.width, camera.height) == (48, 32) and (preset.width, preset.height) == (32, 20)
+    assert dataclasses.replace(camera, width=preset.width, height=preset.height) == preset  # only the grid moved
+    default, _, _, _ = parse_args(["--preset", "flown-fast"])
+    assert training_camera(default) == preset
+    # The agent's encoder is built for the grid: a 48x32 stack goes through it.
+    agent = SacAeAgent(AgentConfig(hidden_dim=32), camera, DEFAULT_ACTION_SPEC)
+    depth = torch.zeros(2, camera.frames, camera.height, camera.width)
+    assert agent.actor.encoder(depth).shape[0] == 2
+
+
 def _train_cmd(run_dir, *extra):
     return [sys.executable, "-m", "sitl.train", "--run-dir", str(run_dir), "--num-uavs", "2", "--num-worlds", "2",
             "--image-size", "16", "--hidden-dim", "32", "--batch-size", "16", "--init-steps", "20",
@@ -214,6 +229,9 @@ def _env():
     (["--method", "ppo"], "unknown method 'ppo'"),
     (["--density", "-2"], "density must be > 0"),
     (["--batch-size", "many"], "argument --batch-size: expected an integer, got 'many'"),
+    (["--camera", "realsense_d435", "--camera-grid", "48"], "camera_grid must be WIDTHxHEIGHT in pixels"),
+    (["--camera", "realsense_d435", "--camera-grid", "48x8"], "camera_grid sides must be 16..256 pixels"),
+    (["--camera-grid", "48x32"], "the paper camera's grid is image_size"),
 ])
 def test_bad_command_line_values(tmp_path, args, message):
     out = subprocess.run([sys.executable, "-m", "sitl.train", "--run-dir", str(tmp_path / "r"), *args],

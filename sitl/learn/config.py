@@ -71,6 +71,9 @@ class TrainConfig:
     image_size: int = _param(32, "depth image side in pixels (the paper camera: square, 90 deg FOV)")
     camera: str = _param("paper", f"camera preset: {', '.join(CAMERA_PRESETS)} (realsense_d435: 87x58 deg, 32x20 px, "
                                   "0.2-10 m; docs/simulator.md)")
+    camera_grid: str = _param("", "WIDTHxHEIGHT in pixels instead of the camera preset's own grid (a real "
+                                  "sensor's field of view min-pooled to more or fewer pixels, e.g. 48x32 for "
+                                  "realsense_d435; empty: the preset's; docs/training.md 'The depth image's grid')")
     camera_noise: bool = _param(False, "train with the stereo noise model (z^2 error, holes reported as 0)")
     mount_pitch_jitter_deg: float = _param(0.0, "camera mount pitch drawn per episode within +-deg of the mount")
     frame_stride: int = _param(1, "control steps between two of the 3 stacked depth frames (1: consecutive, the "
@@ -188,6 +191,11 @@ class TrainConfig:
             torch.device(self.device)
         except RuntimeError:
             raise ValueError(f"unknown torch device {self.device!r}; use cpu or cuda") from None
+        if self.camera_grid:
+            parse_camera_grid(self.camera_grid)  # raises ValueError naming the problem
+            if self.camera == "paper":
+                raise ValueError(f"camera_grid {self.camera_grid!r} is for a real sensor's preset; "
+                                 f"the paper camera's grid is image_size ({self.image_size})")
         if self.image_size < 16:
             raise ValueError(f"image_size must be >= 16 (the encoder shrinks it by 14 pixels), got {self.image_size}")
         if self.max_episodes <= 0 and self.total_updates <= 0:
@@ -363,7 +371,27 @@ def training_camera(cfg: TrainConfig) -> CameraSpec:
     its frames stacked ``frame_stride`` steps apart."""
     if cfg.camera == "paper":
         return CameraSpec(width=cfg.image_size, height=cfg.image_size, frame_stride=cfg.frame_stride)
-    return dataclasses.replace(CAMERA_PRESETS[cfg.camera], frame_stride=cfg.frame_stride)
+    camera = dataclasses.replace(CAMERA_PRESETS[cfg.camera], frame_stride=cfg.frame_stride)
+    if cfg.camera_grid:
+        width, height = parse_camera_grid(cfg.camera_grid)
+        camera = dataclasses.replace(camera, width=width, height=height)
+    return camera
+
+
+def parse_camera_grid(text: str) -> tuple[int, int]:
+    """``"48x32"`` -> (48, 32): a depth image's width and height in pixels, each >= 16 (the encoder
+    shrinks each side by 14 pixels, as it does ``image_size``).
+
+    Raises:
+        ValueError: not WIDTHxHEIGHT, or a side below 16 or above 256.
+    """
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ValueError(f"camera_grid must be WIDTHxHEIGHT in pixels, e.g. 48x32, got {text!r}") from None
+    if not (16 <= width <= 256 and 16 <= height <= 256):
+        raise ValueError(f"camera_grid sides must be 16..256 pixels (the encoder shrinks each by 14), got {text!r}")
+    return width, height
 
 
 def evaluation_scenarios(cfg: TrainConfig) -> tuple[str, ...]:
