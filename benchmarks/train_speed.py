@@ -46,7 +46,7 @@ import dataclasses  # noqa: E402
 from companion.spec import DEFAULT_ACTION_SPEC, STATE_DIM, CameraSpec  # noqa: E402
 from sitl.learn.agent import AgentConfig, SacAeAgent  # noqa: E402
 from sitl.learn.buffer import FrameReplayBuffer  # noqa: E402
-from sitl.learn.config import (BUNDLE_PRESET, PRESETS, TrainConfig, make_sim_config,  # noqa: E402
+from sitl.learn.config import (BUNDLE_PRESET, PRESETS, TrainConfig, make_sim_config, parse_camera_grid,  # noqa: E402
                                resolve_configs, training_camera)
 from sitl.sim.env import SwarmEnv  # noqa: E402
 
@@ -55,15 +55,11 @@ SMOKE_SECONDS = 0.3
 
 
 def parse_grid(text: str) -> tuple[int, int]:
-    """``"32"`` -> (32, 32); ``"32x20"`` -> (32, 20): width and height in pixels."""
-    parts = text.lower().split("x")
+    """``"32"`` -> (32, 32); ``"32x20"`` -> (32, 20): width and height in pixels (``--camera-grid``'s rules)."""
     try:
-        width, height = (int(parts[0]), int(parts[0])) if len(parts) == 1 else (int(parts[0]), int(parts[1]))
-    except (ValueError, IndexError):
-        raise argparse.ArgumentTypeError(f"expected a side or WIDTHxHEIGHT in pixels, got {text!r}") from None
-    if len(parts) > 2 or min(width, height) < 16:
-        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT of at least 16x16 pixels, got {text!r}")
-    return width, height
+        return parse_camera_grid(text if "x" in text.lower() else f"{int(text)}x{int(text)}")
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a side or WIDTHxHEIGHT in pixels, each 16..256, got {text!r}") from None
 
 
 def preset_configs(preset: str) -> tuple[TrainConfig, AgentConfig]:
