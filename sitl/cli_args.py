@@ -105,6 +105,14 @@ def positive_float(text: str) -> float:
     return float_range(0.0, math.inf, low_open=True)(text)
 
 
+def positive_floats(text: str) -> list[float]:
+    """Comma-separated finite numbers > 0 (e.g. ``1.5,1.5,1,1``)."""
+    try:
+        return [positive_float(v) for v in text.split(",")]
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers > 0, got {text!r}") from None
+
+
 def float_range(low: float, high: float, *, low_open: bool = False, high_open: bool = False):
     """A parser of finite numbers between ``low`` and ``high`` (``*_open``: that end excluded)."""
     def parse(text: str) -> float:

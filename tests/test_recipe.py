@@ -88,6 +88,26 @@ def test_explicit_flags_win_over_stage_overrides_and_scale_shrinks_a_recipe(tmp_
     assert all(s.train["eval_episodes"] >= 1 for s in small if "eval_episodes" in s.train)
 
 
+def test_stage_scale_lengthens_single_stages_not_their_validations():
+    stages = PRESETS["flown-fast"]["stages"]
+    longer = scaled_stages(stages, 1.0, (1.5, 1.5, 1.0, 1.0))
+    assert [s.train["total_updates"] for s in longer] == [12_000, 9_000, 6_000, 6_000]
+    assert [s.train["eval_every_updates"] for s in longer] == [3_000, 3_000, 1_500, 1_500]
+    assert [s.train.get("eval_episodes") for s in longer] == [s.train.get("eval_episodes") for s in stages]
+    both = scaled_stages(stages, 0.1, (2.0, 1.0, 1.0, 1.0))  # on top of --recipe-scale
+    assert [s.train["total_updates"] for s in both] == [1_600, 600, 600, 600]
+    with pytest.raises(ValueError, match="2 stage scale"):
+        scaled_stages(stages, 1.0, (1.5, 1.5))
+
+
+def test_stage_scales_are_kept_for_a_resume_and_in_the_provenance(tmp_path):
+    cfg, agent_cfg = tiny_configs(tmp_path)
+    path = Recipe(cfg, agent_cfg, STAGES, tmp_path, rescore_top=1, rescore_episodes=2, stage_scales=(0.5, 1.0)).run()
+    state = json.loads((tmp_path / RECIPE_FILE).read_text())
+    assert state["stage_scales"] == [0.5, 1.0] and [s["updates"] for s in state["stages"]] == [6, 8]
+    assert load_policy(path).metadata["provenance"]["recipe"]["stage_scales"] == [0.5, 1.0]
+
+
 def test_train_help_lists_a_recipes_stages():
     out = subprocess.run([sys.executable, "-m", "sitl.train", "--preset", "bundle-paper", "--help"], cwd=REPO,
                          capture_output=True, text=True, timeout=120)

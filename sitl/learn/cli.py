@@ -37,7 +37,7 @@ import time
 from dataclasses import fields, replace
 from pathlib import Path
 
-from sitl.cli_args import ArgumentParser, finite_float, integer, positive_float
+from sitl.cli_args import ArgumentParser, finite_float, integer, positive_float, positive_floats
 from sitl.learn.agent import AgentConfig
 from sitl.learn.config import PRESETS, TrainConfig, resolve_configs
 from sitl.learn.recipe import RECIPE_FILE, Recipe
@@ -84,6 +84,10 @@ def build_parser(preset: str = TrainConfig.preset) -> argparse.ArgumentParser:
     parser.add_argument("--recipe-scale", type=positive_float, default=None, metavar="F",
                         help="recipe presets: multiply every stage's updates and validation interval by F "
                              "(e.g. 0.01 for a quick trial of the whole recipe; default 1)")
+    parser.add_argument("--stage-scale", type=positive_floats, default=None, metavar="F1,F2,...",
+                        help="recipe presets: one factor per stage on its updates and validation interval, on top "
+                             "of --recipe-scale (e.g. 1.5,1.5,1,1: the first two stages half as long again; "
+                             "default all 1)")
     _add_dataclass_flags(parser, TrainConfig, f"training (defaults: preset {preset})",
                          dataclasses.asdict(train_defaults))
     _add_dataclass_flags(parser, AgentConfig,
@@ -94,11 +98,13 @@ def build_parser(preset: str = TrainConfig.preset) -> argparse.ArgumentParser:
 
 def parse_args(argv: list[str] | None = None) -> tuple[TrainConfig, AgentConfig, str | None, dict]:
     """The two configs (defaults, then the preset, then explicit flags), ``--resume``, and for recipes
-    ``{"scale": --recipe-scale or None, "explicit": the config fields given on the command line}``."""
+    ``{"scale": --recipe-scale or None, "stage_scales": --stage-scale or None, "explicit": the config fields
+    given on the command line}``."""
     parser = build_parser(_preset_of(argv))
     args = vars(parser.parse_args(argv))
     resume = args.pop("resume")
     scale = args.pop("recipe_scale")
+    stage_scales = args.pop("stage_scale")
     train_names = {f.name for f in fields(TrainConfig)}
     train_args = {k: v for k, v in args.items() if k in train_names}
     agent_args = {k: v for k, v in args.items() if k not in train_names}
@@ -106,7 +112,15 @@ def parse_args(argv: list[str] | None = None) -> tuple[TrainConfig, AgentConfig,
         train_cfg, agent_cfg = resolve_configs(train_args, agent_args)
     except ValueError as err:
         parser.error(str(err))
-    return train_cfg, agent_cfg, resume, {"scale": scale, "explicit": frozenset(train_args) | frozenset(agent_args)}
+    if stage_scales is not None:
+        stages = PRESETS[train_cfg.preset].get("stages")
+        if not stages:
+            parser.error(f"--stage-scale: preset {train_cfg.preset} is not a recipe (it has no stages)")
+        if len(stage_scales) != len(stages):
+            parser.error(f"--stage-scale: preset {train_cfg.preset} has {len(stages)} stages, "
+                         f"got {len(stage_scales)} factor(s)")
+    return train_cfg, agent_cfg, resume, {"scale": scale, "stage_scales": stage_scales,
+                                          "explicit": frozenset(train_args) | frozenset(agent_args)}
 
 
 def default_run_dir(cfg: TrainConfig) -> Path:
@@ -115,15 +129,16 @@ def default_run_dir(cfg: TrainConfig) -> Path:
 
 
 def _run_recipe(cfg: TrainConfig, agent_cfg: AgentConfig, run_dir: Path, scale: float | None,
-                explicit: frozenset[str]) -> int:
+                explicit: frozenset[str], stage_scales: list[float] | None = None) -> int:
     """Run (or resume: ``scale`` None) the recipe of ``cfg.preset`` in ``run_dir``."""
     preset = PRESETS[cfg.preset]
     state_path = run_dir / RECIPE_FILE
     if scale is None:  # resuming: as the recipe was started
         state = json.loads(state_path.read_text()) if state_path.is_file() else {}
         scale, explicit = state.get("scale", 1.0), frozenset(state.get("explicit", ()))
+        stage_scales = state.get("stage_scales")
     recipe = Recipe(cfg, agent_cfg, preset["stages"], run_dir, explicit=explicit, scale=scale,
-                    **preset.get("recipe", {}))
+                    stage_scales=stage_scales, **preset.get("recipe", {}))
     try:
         recipe.run()
     except (FileNotFoundError, ValueError) as err:
@@ -162,7 +177,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: cannot create the run directory {run_dir}: {err.strerror}", file=sys.stderr)
             return 2
     if "stages" in PRESETS[cfg.preset]:
-        return _run_recipe(cfg, agent_cfg, run_dir, recipe_args["scale"] or 1.0, recipe_args["explicit"])
+        return _run_recipe(cfg, agent_cfg, run_dir, recipe_args["scale"] or 1.0, recipe_args["explicit"],
+                           recipe_args["stage_scales"])
     try:
         trainer = make_trainer(cfg, agent_cfg, run_dir, resume=bool(resume))
     except (FileNotFoundError, ValueError) as err:

@@ -35,13 +35,26 @@ from sitl.learn.trainer import make_trainer, select_snapshot
 RECIPE_FILE = "recipe.json"
 
 
-def scaled_stages(stages: tuple[RecipeStage, ...], scale: float) -> tuple[RecipeStage, ...]:
-    """The stages with their updates, validation intervals and validation episodes times ``scale`` (>= 1 each)."""
-    if scale == 1.0:
+def scaled_stages(stages: tuple[RecipeStage, ...], scale: float,
+                  stage_scales: tuple[float, ...] | None = None) -> tuple[RecipeStage, ...]:
+    """The stages with their updates, validation intervals and validation episodes times ``scale`` (>= 1 each).
+
+    ``stage_scales`` (one factor per stage) lengthens or shortens single stages on top of that: their
+    updates and validation interval, not their validation episodes (a stage keeps its number of
+    validations and what each one costs)."""
+    factors = tuple(stage_scales) if stage_scales is not None else (1.0,) * len(stages)
+    if len(factors) != len(stages):
+        raise ValueError(f"{len(factors)} stage scale(s) for a recipe of {len(stages)} stages")
+    if scale == 1.0 and all(f == 1.0 for f in factors):
         return tuple(stages)
-    keys = ("total_updates", "eval_every_updates", "eval_episodes")
-    return tuple(replace(st, train={**st.train, **{k: scaled(st.train[k], scale) for k in keys if k in st.train}})
-                 for st in stages)
+    out = []
+    for st, factor in zip(stages, factors):
+        values = {k: scaled(st.train[k], scale * factor) for k in ("total_updates", "eval_every_updates")
+                  if k in st.train}
+        if "eval_episodes" in st.train:
+            values["eval_episodes"] = scaled(st.train["eval_episodes"], scale)
+        out.append(replace(st, train={**st.train, **values}))
+    return tuple(out)
 
 
 def scaled(count: int, scale: float) -> int:
@@ -99,21 +112,26 @@ class Recipe:
 
     def __init__(self, cfg: TrainConfig, agent_cfg: AgentConfig, stages: tuple[RecipeStage, ...], run_dir: Path,
                  rescore_top: int, rescore_episodes: int, explicit: frozenset[str] = frozenset(),
-                 scale: float = 1.0, log=None, evaluation_steps: int | None = None) -> None:
+                 scale: float = 1.0, log=None, evaluation_steps: int | None = None,
+                 stage_scales: tuple[float, ...] | None = None) -> None:
         """``cfg``/``agent_cfg``: the recipe's configs (preset and explicit flags, ``explicit`` naming the
         flags given); ``scale``: multiplies the stages' updates, validation intervals and every
-        evaluation's episodes (a quick trial of the whole recipe); ``final_eval_episodes`` comes from ``cfg``;
+        evaluation's episodes (a quick trial of the whole recipe); ``stage_scales``: one more factor per
+        stage on its updates and validation interval (:func:`scaled_stages`); ``final_eval_episodes`` comes from ``cfg``;
         ``evaluation_steps``: the time limit of the rescoring and the final evaluation (default: the
         training episodes' own)."""
         self.cfg, self.agent_cfg, self.run_dir = cfg, agent_cfg, run_dir
-        self.stages = scaled_stages(stages, scale)
+        self.stages = scaled_stages(stages, scale, stage_scales)
         self.explicit, self.scale = frozenset(explicit), scale
+        self.stage_scales = list(stage_scales) if stage_scales is not None else None
         self.rescore_top, self.rescore_episodes = rescore_top, scaled(rescore_episodes, scale)
         self.evaluation_steps = evaluation_steps
         self.final_eval_episodes = scaled(cfg.final_eval_episodes, scale) if cfg.final_eval_episodes else 0
         self.log = log or (lambda message: print(message, file=sys.stderr, flush=True))
         self.state = _load_state(run_dir)
         self.state.update(scale=scale, explicit=sorted(self.explicit))
+        if self.stage_scales is not None:
+            self.state["stage_scales"] = self.stage_scales
 
     # ------------------------------------------------------------------ helpers
     def _elapsed(self) -> float:
@@ -197,7 +215,8 @@ class Recipe:
         cfg = replace(TrainConfig(**saved["train"]), final_eval_episodes=self.final_eval_episodes)
         trainer = make_trainer(cfg, AgentConfig(**saved["agent"]), sdir, resume=True)
         self._checkpoint_state()  # the time so far (the rescoring included); the export's evaluation is added below
-        recipe = {"preset": self.cfg.preset, "scale": self.scale, "stages": self.state["stages"],
+        recipe = {"preset": self.cfg.preset, "scale": self.scale, "stage_scales": self.stage_scales,
+                  "stages": self.state["stages"],
                   "rescore": {"top": self.rescore_top, "episodes": self.rescore_episodes,
                               "scenes": [s[0] for s in self.stages[index].rescore_scenes],
                               "max_episode_steps": cfg.time_limit(self.evaluation_steps)},
