@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -106,6 +106,18 @@ def test_stage_scales_are_kept_for_a_resume_and_in_the_provenance(tmp_path):
     state = json.loads((tmp_path / RECIPE_FILE).read_text())
     assert state["stage_scales"] == [0.5, 1.0] and [s["updates"] for s in state["stages"]] == [6, 8]
     assert load_policy(path).metadata["provenance"]["recipe"]["stage_scales"] == [0.5, 1.0]
+
+
+def test_a_resume_whose_stage_scales_no_longer_fit_the_recipe_is_a_one_line_error(tmp_path):
+    """A run started with --stage-scale for four stages, resumed after the preset changed its stage count."""
+    train_cfg, agent_cfg = resolve_configs({"preset": "flown-fast", "run_dir": str(tmp_path)}, {})
+    (tmp_path / "config.json").write_text(json.dumps({"train": asdict(train_cfg), "agent": asdict(agent_cfg)}))
+    (tmp_path / RECIPE_FILE).write_text(json.dumps({"stages": [], "wall_s": 0.0, "scale": 1.0,
+                                                    "stage_scales": [1.5, 1.5]}))
+    out = subprocess.run([sys.executable, "-m", "sitl.train", "--resume", str(tmp_path)], cwd=REPO,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert out.stderr.strip().splitlines()[-1] == "error: 2 stage scale(s) for a recipe of 4 stages"
 
 
 def test_train_help_lists_a_recipes_stages():

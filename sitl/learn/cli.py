@@ -137,10 +137,9 @@ def _run_recipe(cfg: TrainConfig, agent_cfg: AgentConfig, run_dir: Path, scale: 
         state = json.loads(state_path.read_text()) if state_path.is_file() else {}
         scale, explicit = state.get("scale", 1.0), frozenset(state.get("explicit", ()))
         stage_scales = state.get("stage_scales")
-    recipe = Recipe(cfg, agent_cfg, preset["stages"], run_dir, explicit=explicit, scale=scale,
-                    stage_scales=stage_scales, **preset.get("recipe", {}))
-    try:
-        recipe.run()
+    try:  # a recipe.json whose stage scales no longer fit the preset's stages is a one-line error too
+        Recipe(cfg, agent_cfg, preset["stages"], run_dir, explicit=explicit, scale=scale,
+               stage_scales=stage_scales, **preset.get("recipe", {})).run()
     except (FileNotFoundError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
