@@ -232,7 +232,7 @@ def _env():
     (["--camera", "realsense_d435", "--camera-grid", "48"], "camera_grid must be WIDTHxHEIGHT in pixels"),
     (["--camera", "realsense_d435", "--camera-grid", "48x8"], "camera_grid sides must be 16..256 pixels"),
     (["--camera-grid", "48x32"], "the paper camera's grid is image_size"),
-    (["--preset", "flown-fast", "--stage-scale", "1.5,1.5"], "preset flown-fast has 4 stages, got 2 factor(s)"),
+    (["--preset", "flown-fast", "--stage-scale", "1.5,1.5"], "2 stage scale(s) for a recipe of 4 stages (preset flown-fast)"),
     (["--preset", "flown-fast", "--stage-scale", "1.5,0,1,1"], "expected comma-separated numbers > 0"),
     (["--stage-scale", "2"], "preset fast is not a recipe"),
 ])

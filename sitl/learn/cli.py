@@ -40,7 +40,7 @@ from pathlib import Path
 from sitl.cli_args import ArgumentParser, finite_float, integer, positive_float, positive_floats
 from sitl.learn.agent import AgentConfig
 from sitl.learn.config import PRESETS, TrainConfig, resolve_configs
-from sitl.learn.recipe import RECIPE_FILE, Recipe
+from sitl.learn.recipe import RECIPE_FILE, Recipe, scaled_stages
 from sitl.learn.trainer import make_trainer
 
 PROG = "python -m sitl.train"
@@ -112,13 +112,14 @@ def parse_args(argv: list[str] | None = None) -> tuple[TrainConfig, AgentConfig,
         train_cfg, agent_cfg = resolve_configs(train_args, agent_args)
     except ValueError as err:
         parser.error(str(err))
-    if stage_scales is not None:
+    if stage_scales is not None:  # checked before a run directory is made
         stages = PRESETS[train_cfg.preset].get("stages")
         if not stages:
             parser.error(f"--stage-scale: preset {train_cfg.preset} is not a recipe (it has no stages)")
-        if len(stage_scales) != len(stages):
-            parser.error(f"--stage-scale: preset {train_cfg.preset} has {len(stages)} stages, "
-                         f"got {len(stage_scales)} factor(s)")
+        try:
+            scaled_stages(stages, 1.0, stage_scales)
+        except ValueError as err:
+            parser.error(f"--stage-scale: {err} (preset {train_cfg.preset})")
     return train_cfg, agent_cfg, resume, {"scale": scale, "stage_scales": stage_scales,
                                           "explicit": frozenset(train_args) | frozenset(agent_args)}
 
