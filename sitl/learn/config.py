@@ -57,6 +57,9 @@ class TrainConfig:
     geometry: str = _param("paper", "scene geometry: paper (6 m floor, circle at 10 m) or flown (altitudes "
                                     "1.5-15 m, circles 8-20 m at 2-15 m, 0.5 m start jitter; sitl.sim.config)")
     obstacle_fraction: float = _param(0.0, "mixed scenario: probability that an episode is an obstacles episode")
+    obstacle_density: str = _param("", "mixed scenario: UAV density of its obstacles episodes (small, medium, large or "
+                                       "UAV/m^3; the obstacle scene that validation and swarm_test fly is "
+                                       f"{OBSTACLE_SCENE_DENSITY:g}); empty: --density")
     low_floor_fraction: float = _param(0.0, "flown geometry, training worlds only: share of random/obstacle episodes "
                                             f"whose box floor is drawn within {LOW_FLOOR_BAND_M:g} m of the lowest altitude, so goals "
                                             "near the ground come up more often (validation and tests fly the "
@@ -153,6 +156,13 @@ class TrainConfig:
         scenario_for(self.geometry, "random", low_floor_fraction=self.low_floor_fraction)
         if not math.isfinite(density_from_name(self.density)):
             raise ValueError(f"density must be a finite number of UAV/m^3, got {self.density!r}")
+        if self.obstacle_density:
+            try:
+                finite = math.isfinite(density_from_name(self.obstacle_density))
+            except ValueError as err:
+                raise ValueError(f"obstacle_density: {err}") from None
+            if not finite:
+                raise ValueError(f"obstacle_density must be a finite number of UAV/m^3, got {self.obstacle_density!r}")
         # Integer ranges: the upper ends keep a typo from allocating (or promising) the impossible.
         for name, low, high in TRAIN_INT_RANGES:
             value = getattr(self, name)
@@ -349,6 +359,8 @@ def make_sim_config(cfg: TrainConfig, num_worlds: int, record_paths: bool = Fals
         values["circle_radius_m"] = cfg.circle_radius_m  # the flown geometry draws the radius per episode
     if name == "obstacles":
         values["density"] = OBSTACLE_SCENE_DENSITY  # the obstacle scene's own spacing, as swarm_test flown flies it
+    if name == "mixed" and cfg.obstacle_density:
+        values["obstacle_density"] = density_from_name(cfg.obstacle_density)
     training = scenario_name is None  # randomization trains robustness; evaluations fly the nominal vehicle
     if training and cfg.low_floor_fraction > 0:
         values["low_floor_fraction"] = cfg.low_floor_fraction

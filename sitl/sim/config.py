@@ -88,8 +88,9 @@ class ScenarioConfig:
     3.6 % of a uniform draw in the medium scene, are practised more often.
 
     Mixed (training only): each episode is a circle episode with probability
-    ``circle_fraction``, an obstacles one with probability ``obstacle_fraction``, else a
-    random one.
+    ``circle_fraction``, an obstacles one with probability ``obstacle_fraction`` (at
+    ``obstacle_density`` UAV/m^3 when set, e.g. the obstacle scene's own
+    :data:`OBSTACLE_SCENE_DENSITY`, else at ``density``), else a random one.
     """
 
     name: str = "random"
@@ -113,6 +114,7 @@ class ScenarioConfig:
     obstacle_margin_m: float = 1.0
     obstacle_clearance_m: float = 1.0  # > R + margin: free space around every start and goal
     obstacle_fraction: float = 0.0  # mixed: probability of an obstacles episode
+    obstacle_density: float | None = None  # mixed: UAV/m^3 of its obstacles episodes (None: density)
 
     def __post_init__(self) -> None:
         if self.name not in TRAINING_SCENARIOS:
@@ -146,6 +148,8 @@ class ScenarioConfig:
                              f"got {self.obstacle_clearance_m}")
         if not self.density > 0:
             raise ValueError(f"density must be > 0 UAV/m^3, got {self.density}")
+        if self.obstacle_density is not None and not self.obstacle_density > 0:
+            raise ValueError(f"obstacle_density must be > 0 UAV/m^3, got {self.obstacle_density}")
         if not self.circle_radius_m > 0:
             raise ValueError(f"circle radius must be > 0 m, got {self.circle_radius_m}")
 

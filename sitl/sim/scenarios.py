@@ -8,6 +8,7 @@ start offsets per episode, and ``obstacles`` puts poles, trees and boxes among t
 from __future__ import annotations
 
 import math
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -188,7 +189,7 @@ def sample_scenario(num_uavs: int, config: ScenarioConfig, rng: np.random.Genera
         if u < config.circle_fraction:
             return sample_circle(num_uavs, config, rng)
         if u < config.circle_fraction + config.obstacle_fraction:
-            return sample_obstacles(num_uavs, config, rng)
+            return sample_obstacles(num_uavs, obstacle_episode_config(config), rng)
         return sample_random(num_uavs, config, rng)
     if config.name == "random":
         return sample_random(num_uavs, config, rng)
@@ -199,8 +200,17 @@ def sample_scenario(num_uavs: int, config: ScenarioConfig, rng: np.random.Genera
     raise ValueError(f"unknown scenario {config.name!r}")
 
 
+def obstacle_episode_config(config: ScenarioConfig) -> ScenarioConfig:
+    """The configuration a mixed scenario's obstacles episodes are drawn with: at ``obstacle_density`` when set."""
+    if config.obstacle_density is None:
+        return config
+    return dataclasses.replace(config, density=config.obstacle_density)
+
+
 def max_obstacles(num_uavs: int, config: ScenarioConfig) -> tuple[int, int]:
     """(boxes, cylinders) rows an environment must hold per world for ``config``'s episodes."""
-    if config.name == "obstacles" or (config.name == "mixed" and config.obstacle_fraction > 0):
+    if config.name == "obstacles":
         return obstacle_counts(num_uavs, config)
+    if config.name == "mixed" and config.obstacle_fraction > 0:
+        return obstacle_counts(num_uavs, obstacle_episode_config(config))
     return 0, 0
