@@ -15,7 +15,8 @@ from sitl.sim.config import (FLOWN_ALTITUDE_RANGE_M, OBSTACLE_SCENE_DENSITY, Sce
 from sitl.sim.dynamics import KinematicDynamics, KinematicRandomization
 from sitl.sim.env import SwarmEnv
 from sitl.sim.metrics import UAVRecord, success_by_goal_altitude
-from sitl.sim.scenarios import obstacle_counts, sample_circle, sample_obstacles, sample_random
+from sitl.sim.scenarios import (max_obstacles, obstacle_counts, sample_circle, sample_obstacles, sample_random,
+                                sample_scenario)
 
 
 def test_flown_random_scene_spans_the_altitude_range_with_bounded_jitter():
@@ -98,6 +99,29 @@ def test_obstacles_keep_clear_of_starts_and_goals():
         d = distance_to_obstacles_m(np.concatenate([s.start_ned, s.goal_ned]), s.boxes, s.cylinders)
         assert d.min() >= cfg.obstacle_clearance_m
         assert np.all(s.cylinders[:, 4] == 0.0) and np.all(s.boxes[:, 2] + s.boxes[:, 5] == pytest.approx(0.0))
+
+
+def test_a_mixed_scenario_draws_its_obstacles_episodes_at_their_own_density():
+    """``obstacle_density`` makes training's obstacles episodes the obstacle scene that validation flies:
+    its box (line lengths) and its obstacle count; random episodes keep ``density``."""
+    scene = scenario_for("flown", "obstacles", density=OBSTACLE_SCENE_DENSITY)
+    mixed = scenario_for("flown", "mixed", circle_fraction=0.0, obstacle_fraction=0.5,
+                         obstacle_density=OBSTACLE_SCENE_DENSITY)
+    plain = scenario_for("flown", "mixed", circle_fraction=0.0, obstacle_fraction=0.5)
+    assert max_obstacles(8, mixed) == obstacle_counts(8, scene) != max_obstacles(8, plain)
+
+    def spans(cfg, want_obstacles):
+        rng, out = np.random.default_rng(2), []
+        while len(out) < 200:
+            s = sample_scenario(8, cfg, rng)
+            if (len(s.boxes) + len(s.cylinders) > 0) == want_obstacles:
+                out.append(np.ptp(s.start_ned[:, :2], axis=0).max())
+        return np.mean(out)
+    # The box of 8 UAVs is ~8.1 m wide at 0.03 UAV/m^3 and ~6.4 m at medium (0.06).
+    assert spans(mixed, True) > 1.15 * spans(plain, True)
+    assert spans(mixed, False) == pytest.approx(spans(plain, False), rel=0.05)
+    with pytest.raises(ValueError, match="obstacle_density must be > 0"):
+        scenario_for("flown", "mixed", obstacle_fraction=0.2, obstacle_density=0.0)
 
 
 def test_flying_into_a_pole_ends_the_episode_as_an_obstacle_collision():

@@ -235,6 +235,8 @@ def _env():
     (["--preset", "flown-fast", "--stage-scale", "1.5,1.5"], "2 stage scale(s) for a recipe of 4 stages (preset flown-fast)"),
     (["--preset", "flown-fast", "--stage-scale", "1.5,0,1,1"], "expected comma-separated numbers > 0"),
     (["--stage-scale", "2"], "preset fast is not a recipe"),
+    (["--obstacle-density", "dense"], "obstacle_density: unknown density 'dense'"),
+    (["--obstacle-density", "0"], "obstacle_density: density must be > 0"),
 ])
 def test_bad_command_line_values(tmp_path, args, message):
     out = subprocess.run([sys.executable, "-m", "sitl.train", "--run-dir", str(tmp_path / "r"), *args],
