@@ -7,8 +7,8 @@ start offsets per episode, and ``obstacles`` puts poles, trees and boxes among t
 
 from __future__ import annotations
 
-import math
 import dataclasses
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
