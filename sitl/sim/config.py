@@ -164,7 +164,8 @@ FLOWN_START_JITTER_M = 0.5
 #: above the lowest altitude (medium box 3.2 m tall: ~30 % of its goals then lie below 3 m).
 LOW_FLOOR_BAND_M = 1.0
 #: UAVs per cubic metre of the obstacle scene: sparser than the paper's ``large`` (0.04), so the
-#: 8 UAVs' lines are ~9 m long and cross the obstacles (flying straight, ~11 % of UAVs hit one).
+#: 8 UAVs' lines are ~4.9 m long on average (~9 m at the 99th percentile) and cross the obstacles
+#: (flying straight, ~11 % of UAVs hit one).
 OBSTACLE_SCENE_DENSITY = 0.03
 #: The geometries a protocol or a training run names: ``paper`` (IV.B-C: 6 m floor, circle r = 12 m
 #: at 10 m, 0.25 m circle jitter) and ``flown`` (above).
