@@ -299,7 +299,8 @@ def test_n_step_returns_follow_each_agent_and_stop_at_episode_ends():
 
 
 def test_second_stage_starts_from_a_checkpoint_and_trains_on_mixed_scenes(tmp_path):
-    """--init-from: the networks carry over, the provenance adds both stages, mixed evaluates both scenes."""
+    """--init-from: the networks carry over, the provenance adds both stages (and a non-default obstacle
+    density), mixed evaluates every scene it mixes."""
     first, second = tmp_path / "stage1", tmp_path / "stage2"
     run = lambda *a: subprocess.run(_train_cmd(*a), capture_output=True, text=True, env=_env(), cwd=tmp_path,  # noqa: E731
                                     timeout=300)
@@ -307,13 +308,15 @@ def test_second_stage_starts_from_a_checkpoint_and_trains_on_mixed_scenes(tmp_pa
     assert done.returncode == 0, done.stderr
     stage1 = torch.load(first / "checkpoint.pt", weights_only=False)
     done = run(second, "--total-updates", "12", "--scenario", "mixed", "--init-from", str(first),
-               "--eval-every-updates", "5", "--eval-episodes", "2", "--select-best")
+               "--eval-every-updates", "5", "--eval-episodes", "2", "--select-best",
+               "--obstacle-fraction", "0.2", "--obstacle-density", "0.03")
     assert done.returncode == 0, done.stderr
     assert f"initialised from {first / 'checkpoint.pt'}: 15 updates" in done.stderr
     final = json.loads((second / "final_eval.json").read_text())
     assert final["updates"] == 27 and final["stages"][0]["updates"] == 15 and final["stages"][1]["updates"] == 12
     assert final["wall_time_s"] > final["stages"][1]["wall_s"]
     assert final["evaluation"]["scenario"] == "random" and final["evaluation_circle"]["scenario"] == "circle"
+    assert final["evaluation_obstacles"]["scenario"] == "obstacles" and final["obstacle_density"] == "0.03"
     # --select-best: every validation was kept, the last networks (12 updates, between validations) were
     # validated too, and the exported networks are the best one's.
     validations = json.loads((second / "snapshots" / "validation.json").read_text())

@@ -576,6 +576,8 @@ class Trainer:
             provenance["blind_motion_reward"] = cfg.blind_motion_reward
         if cfg.avoid_weight != RewardConfig.w_avoid:  # not the paper's eq. 4 weight
             provenance["avoid_weight"] = cfg.avoid_weight
+        if cfg.obstacle_density:  # the training mix's obstacles episodes at their own density
+            provenance["obstacle_density"] = cfg.obstacle_density
         if self.agent_cfg.privileged_critic:  # asymmetric actor-critic: not the paper's critic
             provenance["privileged_critic"] = {"neighbours": PRIVILEGED_NEIGHBOURS, "obstacle_point": True,
                                                "altitude": True, "module": "sitl.learn.privileged"}
