@@ -330,7 +330,7 @@ def _fly(args: argparse.Namespace, log) -> int:
     for _ in range(20):  # let TorchScript's profiling executor settle before the first real step
         policy.act(blank_depth, blank_state)
     cam = policy.camera
-    spacing = f" {cam.frame_stride} periods apart" if cam.frame_stride != 1 else ""
+    spacing = cam.describe_stack()
     log.event("model", f"model {args.model}: {cam.width}x{cam.height}x{cam.frames} depth{spacing}, "
               f"{cam.hfov_deg:g} x {cam.vertical_fov_deg:.4g} deg pitched {cam.mount_pitch_deg:+g} deg, "
               f"range {cam.min_range_m:g}-{cam.max_range_m:g} m, control period {policy.control_period_s:g} s",

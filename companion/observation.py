@@ -247,9 +247,9 @@ def validate_depth_frame(depth_m: np.ndarray, camera: CameraSpec,
 class DepthFrameStack:
     """The policy's depth input for ``num_stacks`` cameras: ``frames`` images, oldest first.
 
-    Consecutive stacked images are ``camera.frame_stride`` pushes apart, so the stack remembers
-    the last ``camera.history_frames`` images and :attr:`frames` picks every ``frame_stride``-th
-    of them, ending with the newest. After a reset the history is filled with copies of the first
+    The stack remembers the last ``camera.history_frames`` images and :attr:`frames` picks those
+    ``camera.stack_ages`` pushes old (every ``frame_stride``-th, or the listed ``frame_ages``),
+    ending with the newest. After a reset the history is filled with copies of the first
     frame, so a freshly started vehicle has a full observation at once.
     """
 
@@ -262,11 +262,11 @@ class DepthFrameStack:
     @property
     def frames(self) -> np.ndarray:
         """The policy's ``depth`` input [num_stacks, frames, H, W] (oldest first): the history itself
-        (a view) for consecutive frames, else a copy of every ``frame_stride``-th image."""
-        stride = self.camera.frame_stride
-        if stride == 1:
+        (a view) for consecutive frames, else a copy of the images at ``camera.history_columns``."""
+        columns = self.camera.history_columns
+        if len(columns) == self.history.shape[1]:
             return self.history
-        return np.ascontiguousarray(self.history[:, ::stride])
+        return np.ascontiguousarray(self.history[:, list(columns)])
 
     def reset(self, first_frame: np.ndarray, index: np.ndarray | slice = slice(None)) -> None:
         """Fill the stacks at ``index`` with ``first_frame`` ([k, H, W] or [H, W])."""

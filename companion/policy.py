@@ -61,6 +61,7 @@ from companion.spec import (
     POLICY_MAX_RANGE_M,
     DEFAULT_TASK_SPEC,
     INVALID_DEPTH_M,
+    MAX_FRAME_AGE,
     MAX_FRAME_STRIDE,
     MAX_MOUNT_PITCH_DEG,
     STATE_NAMES,
@@ -98,6 +99,8 @@ def build_metadata(camera: CameraSpec, action: ActionSpec, control_period_s: flo
             "min_range_m": camera.min_range_m, "max_range_m": camera.max_range_m,
             "invalid_value_m": INVALID_VALUE_M, "invalid_reads_as": INVALID_READS_AS,
             "units": "m", "kind": "planar", "order": "oldest_first",
+            # Only where the stack is not evenly spaced (older files and readers never see it).
+            **({"frame_ages": list(camera.frame_ages)} if camera.frame_ages else {}),
         },
         "control_period_s": control_period_s,
         "body_frame": BODY_FRAME,
@@ -250,6 +253,12 @@ def _check_metadata(meta: object, path: str) -> tuple[CameraSpec, ActionSpec, fl
     # Optional (files written before it existed stack consecutive frames).
     geometry = {"frame_stride": _integer(depth.get("frame_stride", 1), path, "depth frame_stride", 1,
                                          MAX_FRAME_STRIDE)}
+    if "frame_ages" in depth:  # optional: unevenly spaced stacks (docs/policy_file.md)
+        ages = depth["frame_ages"]
+        _require(isinstance(ages, list) and len(ages) == frames, path,
+                 f"depth frame_ages must be a list of {frames} integers (one per frame), file says {ages!r:.60}")
+        geometry["frame_ages"] = tuple(_integer(a, path, f"depth frame_ages[{i}]", 0, MAX_FRAME_AGE)
+                                       for i, a in enumerate(ages))
     hfov_deg = _finite_number(depth["hfov_deg"], path, "depth hfov_deg")
     max_range_m = _finite_number(depth["max_range_m"], path, "depth max_range_m")
     _require(0 < max_range_m <= POLICY_MAX_RANGE_M, path,

@@ -735,7 +735,7 @@ class Companion:
         else:
             info["stacked"] = "kept"  # the camera missed this period: no new frame to add
         self._last_stacked_arrival_s = max(self._last_stacked_arrival_s, frame.arrival_s)
-        info["stack_seqs"] = self._stack_seqs[::self.policy.camera.frame_stride]  # the frames the policy sees
+        info["stack_seqs"] = [self._stack_seqs[c] for c in self.policy.camera.history_columns]  # the frames the policy sees
         self._last_pushed_s = now
         state = build_state(odom.pos_ned[None], np.array([odom.yaw_rad]), odom.vel_ned[None],
                             np.array([odom.yaw_rate_rad_s]), self.goal_ned[None])

@@ -129,6 +129,9 @@ class CameraSpec:
     mount_pitch_deg: float = 0.0  # optical axis above (+) / below (-) the heading frame's forward axis
     min_range_m: float = 0.0  # nearer returns are invalid on the sensor (0 m: an ideal camera)
     frame_stride: int = 1  # control steps between two stacked frames (1: consecutive frames)
+    #: Age in control steps of each stacked frame, oldest first, the newest 0 (e.g. (3, 1, 0): ticks
+    #: t-3, t-1 and t). Empty: evenly ``frame_stride`` apart. Given, it replaces ``frame_stride`` (which must be 1).
+    frame_ages: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         if self.width < 1 or self.height < 1:
@@ -149,11 +152,36 @@ class CameraSpec:
             raise ValueError(f"camera frames must be >= 1, got {self.frames}")
         if not 1 <= self.frame_stride <= MAX_FRAME_STRIDE:
             raise ValueError(f"camera frame_stride must be in [1, {MAX_FRAME_STRIDE}], got {self.frame_stride}")
+        if self.frame_ages:
+            object.__setattr__(self, "frame_ages", tuple(int(a) for a in self.frame_ages))
+            check_frame_ages(self.frame_ages, self.frames)
+            if self.frame_stride != 1:
+                raise ValueError(f"camera frame_ages {list(self.frame_ages)} replace frame_stride, which must then be 1, "
+                                 f"got {self.frame_stride}")
+
+    @property
+    def stack_ages(self) -> tuple[int, ...]:
+        """Age in control steps of each stacked frame, oldest first (the newest 0)."""
+        if self.frame_ages:
+            return self.frame_ages
+        return tuple((self.frames - 1 - i) * self.frame_stride for i in range(self.frames))
 
     @property
     def history_frames(self) -> int:
-        """Frames a stack must remember to serve one observation (:func:`stack_history_frames`)."""
-        return stack_history_frames(self.frames, self.frame_stride)
+        """Frames a stack must remember to serve one observation: the oldest stacked one's age + 1."""
+        return self.stack_ages[0] + 1
+
+    @property
+    def history_columns(self) -> tuple[int, ...]:
+        """Where each stacked frame sits in a history of :attr:`history_frames` images (oldest first)."""
+        return tuple(self.history_frames - 1 - age for age in self.stack_ages)
+
+    def describe_stack(self) -> str:
+        """How the stacked frames are spaced in time, for people: '' (consecutive), ' 3 periods apart'
+        or ' at ticks t-3, t-1, t'."""
+        if self.frame_ages:
+            return " at ticks " + ", ".join(f"t-{a}" if a else "t" for a in self.frame_ages)
+        return f" {self.frame_stride} periods apart" if self.frame_stride != 1 else ""
 
     @property
     def tan_half_hfov(self) -> float:
@@ -182,10 +210,19 @@ class CameraSpec:
 MAX_FRAME_STRIDE = 10
 
 
-def stack_history_frames(frames: int, frame_stride: int) -> int:
-    """Frames a stack of ``frames`` images ``frame_stride`` control steps apart must remember:
-    the oldest stacked frame is ``(frames - 1) * frame_stride`` steps before the newest."""
-    return (frames - 1) * frame_stride + 1
+#: Oldest age (control steps) a stacked frame may have: the most a uniform stride reaches with 3 frames.
+MAX_FRAME_AGE = 2 * MAX_FRAME_STRIDE
+
+
+def check_frame_ages(ages: tuple[int, ...], frames: int) -> None:
+    """Raise ``ValueError`` unless ``ages`` are ``frames`` strictly decreasing integers ending in 0,
+    none older than :data:`MAX_FRAME_AGE`."""
+    listed = list(ages)
+    if len(listed) != frames:
+        raise ValueError(f"camera frame_ages {listed} must give one age per stacked frame ({frames})")
+    if listed[-1] != 0 or any(a <= b for a, b in zip(listed, listed[1:])) or listed[0] > MAX_FRAME_AGE:
+        raise ValueError(f"camera frame_ages {listed} must decrease strictly to 0 (the newest frame), "
+                         f"oldest at most {MAX_FRAME_AGE}")
 
 
 #: Largest camera mount pitch (deg) a spec or a policy file may declare: beyond it the camera

@@ -135,6 +135,23 @@ def test_frame_stack_with_a_stride_spans_longer():
         CameraSpec(frame_stride=0)
 
 
+def test_frame_stack_at_listed_ages():
+    """frame_ages (6, 1, 0): the newest frame, the one before it and the one 6 pushes back."""
+    spec = CameraSpec(width=2, height=2, frames=3, frame_ages=(6, 1, 0))
+    assert spec.history_frames == 7 and spec.describe_stack() == " at ticks t-6, t-1, t"
+    stack = DepthFrameStack(1, spec)
+    stack.reset(np.full((2, 2), 0.0))
+    for value in range(1, 9):
+        stack.push(np.full((2, 2), float(value)))
+        assert stack.frames[0, :, 0, 0].tolist() == [max(value - 6, 0), value - 1, value]
+    for ages, reason in [((1, 0), "one age per stacked frame"), ((1, 2, 0), "decrease strictly"),
+                         ((2, 1, 1), "decrease strictly"), ((99, 1, 0), "oldest at most")]:
+        with pytest.raises(ValueError, match=reason):
+            CameraSpec(frames=3, frame_ages=ages)
+    with pytest.raises(ValueError, match="replace frame_stride"):
+        CameraSpec(frames=3, frame_ages=(6, 1, 0), frame_stride=2)
+
+
 def test_action_spec_clips_and_rejects_nan():
     spec = DEFAULT_ACTION_SPEC
     clipped = spec.validate(np.array([[3.0, -1.0, 0.7], [-1.0, 0.2, -0.9]]))

@@ -340,6 +340,9 @@ def test_version_2_camera_geometry_round_trips(tmp_path):
     strided = dataclasses.replace(REALSENSE_D435, frame_stride=3)
     save_policy(_Const(0.0), build_metadata(strided, DEFAULT_ACTION_SPEC, 0.1, {}), path)
     assert load_policy(path).camera == strided
+    uneven = dataclasses.replace(REALSENSE_D435, frame_ages=(6, 1, 0))
+    save_policy(_Const(0.0), build_metadata(uneven, DEFAULT_ACTION_SPEC, 0.1, {}), path)
+    assert load_policy(path).camera == uneven and load_policy(path).metadata["depth"]["frame_ages"] == [6, 1, 0]
     older = _meta()  # files written before frame_stride existed stack consecutive frames
     del older["depth"]["frame_stride"]
     assert load_policy(_write_raw(tmp_path / "older.pt", older)).camera.frame_stride == 1
@@ -354,6 +357,10 @@ def test_version_2_camera_geometry_round_trips(tmp_path):
     ({"depth.invalid_reads_as": "zero"}, "invalid-pixel convention 0 -> 'zero'"),
     ({"depth.frame_stride": 0}, "depth frame_stride must be in 1..10"),
     ({"depth.frame_stride": 2.5}, "depth frame_stride must be an integer"),
+    ({"depth.frame_ages": [1, 0]}, "depth frame_ages must be a list of 3 integers"),
+    ({"depth.frame_ages": [2, 1.5, 0]}, r"depth frame_ages\[1\] must be an integer"),
+    ({"depth.frame_ages": [0, 1, 2]}, "must decrease strictly to 0"),
+    ({"depth.frame_ages": [6, 1, 0], "depth.frame_stride": 3}, "replace frame_stride"),
 ])
 def test_bad_version_2_camera_fields_are_refused(tmp_path, changes, reason):
     with pytest.raises(PolicyFileError, match=reason):

@@ -47,14 +47,15 @@ def test_buffer_rebuilds_stacks_from_frames_stored_once():
     assert buf._next_frame == 10
 
 
-@pytest.mark.parametrize("stride", [1, 3])
-def test_buffer_gives_back_the_observations_the_frame_stack_gave_the_policy(stride):
+@pytest.mark.parametrize("stride, ages", [(1, ()), (3, ()), (1, (6, 1, 0))])
+def test_buffer_gives_back_the_observations_the_frame_stack_gave_the_policy(stride, ages):
     """The replay buffer rebuilds each transition's stacks (n-step included) exactly as the
-    environment's DepthFrameStack built them, episode starts included, for any frame stride."""
-    camera = CameraSpec(width=1, height=1, frames=3, frame_stride=stride)
+    environment's DepthFrameStack built them, episode starts included, for any frame stride or
+    unevenly spaced stack."""
+    camera = CameraSpec(width=1, height=1, frames=3, frame_stride=stride, frame_ages=ages)
     stack = DepthFrameStack(2, camera)
     buf = FrameReplayBuffer(capacity=500, num_agents=2, frames=3, height=1, width=1, state_dim=6, action_dim=3,
-                            frame_stride=stride)
+                            frame_ages=camera.stack_ages)
     rng = np.random.default_rng(0)
     seen: dict[int, tuple[list, list]] = {}  # transition id -> (obs, next obs) as the policy saw them
     value = 0.0
@@ -237,6 +238,8 @@ def _env():
     (["--stage-scale", "2"], "preset fast is not a recipe"),
     (["--obstacle-density", "dense"], "obstacle_density: unknown density 'dense'"),
     (["--obstacle-density", "0"], "obstacle_density: density must be > 0"),
+    (["--frame-ages", "3,1"], "frame_ages [3, 1] must give one age per stacked frame"),
+    (["--frame-ages", "6,1,0", "--frame-stride", "2"], "frame_ages '6,1,0' replace frame_stride"),
 ])
 def test_bad_command_line_values(tmp_path, args, message):
     out = subprocess.run([sys.executable, "-m", "sitl.train", "--run-dir", str(tmp_path / "r"), *args],

@@ -18,28 +18,31 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from companion.spec import stack_history_frames
 
 
 class FrameReplayBuffer:
     """Transitions of many agents sharing one policy (centralised training, paper Alg. 1)."""
 
     def __init__(self, capacity: int, num_agents: int, frames: int, height: int, width: int, state_dim: int,
-                 action_dim: int, seed: int = 0, privileged_dim: int = 0, frame_stride: int = 1,
+                 action_dim: int, seed: int = 0, privileged_dim: int = 0, frame_ages: tuple[int, ...] | None = None,
                  precollision_steps: int = 0) -> None:
         """``privileged_dim`` > 0: every transition also keeps the critic's privileged input for its
         observation and its next one (asymmetric critic, :mod:`sitl.learn.privileged`).
-        ``frame_stride``: steps between two stacked frames (``CameraSpec.frame_stride``).
+        ``frame_ages``: age in steps of each stacked frame, oldest first, ending in 0
+        (``CameraSpec.stack_ages``; default: consecutive frames).
         ``precollision_steps`` > 0: a UAV's last that many transitions before a collision are marked,
         and :meth:`sample` can draw part of a batch from them (``precollision_fraction``)."""
         self.capacity = capacity
         self.frames_per_obs = frames
-        self.frame_stride = frame_stride
-        history = stack_history_frames(frames, frame_stride)  # frames an agent's observation reaches back over
+        ages = tuple(frame_ages) if frame_ages is not None else tuple(range(frames - 1, -1, -1))
+        if len(ages) != frames:
+            raise ValueError(f"frame_ages {list(ages)} must give one age per stacked frame ({frames})")
+        history = ages[0] + 1  # frames an agent's observation reaches back over
+        self.frame_columns = np.array([history - 1 - a for a in ages], dtype=np.int64)  # the stacked ones among them
         self.frame_capacity = 2 * capacity + (8 + history) * num_agents
         self.frame_store = np.zeros((self.frame_capacity, height, width), dtype=np.float16)
-        # The agent's frame history before the step, then the new frame: the observation is every
-        # frame_stride-th of the first `history` columns, the next one the same from column 1 on.
+        # The agent's frame history before the step, then the new frame: the observation is the
+        # frame_columns of the first `history` columns, the next one the same from column 1 on.
         self.frame_index = np.zeros((capacity, history + 1), dtype=np.int64)
         self.state = np.zeros((capacity, state_dim), dtype=np.float32)
         self.next_state = np.zeros((capacity, state_dim), dtype=np.float32)
@@ -187,9 +190,9 @@ class FrameReplayBuffer:
             last = np.where(extending, nxt, last)
             reward += np.where(extending, factor * self.reward[last, 0], 0.0)
         discount = factor * gamma * self.not_done[last, 0]
-        stride, history = self.frame_stride, self.frame_index.shape[1] - 1
-        obs_frames = self.frame_store[self.frame_index[rows, :history:stride]]
-        next_frames = self.frame_store[self.frame_index[last, 1::stride]]
+        columns = self.frame_columns
+        obs_frames = self.frame_store[self.frame_index[rows[:, None], columns]]
+        next_frames = self.frame_store[self.frame_index[last[:, None], columns + 1]]
         to = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)).to(device)  # noqa: E731
         batch = {
             "depth": to(obs_frames),

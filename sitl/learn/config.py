@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from companion.spec import CAMERA_PRESETS, DEFAULT_TASK_SPEC, MAX_FRAME_STRIDE, CameraSpec
+from companion.spec import CAMERA_PRESETS, DEFAULT_TASK_SPEC, MAX_FRAME_STRIDE, CameraSpec, check_frame_ages
 from sitl.cli_args import MAX_THREADS
 from sitl.learn.agent import METHODS, AgentConfig
 from sitl.sim.camera import StereoNoise
@@ -81,6 +81,9 @@ class TrainConfig:
     mount_pitch_jitter_deg: float = _param(0.0, "camera mount pitch drawn per episode within +-deg of the mount")
     frame_stride: int = _param(1, "control steps between two of the 3 stacked depth frames (1: consecutive, the "
                                   "paper; 3: the stack spans 0.6 s; docs/training.md 'A frame stack spanning longer')")
+    frame_ages: str = _param("", "age in control steps of each of the 3 stacked frames, oldest first, ending in 0, "
+                                 "e.g. 3,1,0 (ticks t-3, t-1, t); replaces --frame-stride; empty: --frame-stride "
+                                 "(docs/training.md 'A stack with both spans')")
     avoid_counts_ground: bool = _param(False, "eq. 4's d_min counts the ground, as in the paper (default: UAVs and "
                                               "obstacles only; docs/training.md)")
     collision_reward: float = _param(RewardConfig.r_collision,
@@ -201,6 +204,11 @@ class TrainConfig:
             torch.device(self.device)
         except RuntimeError:
             raise ValueError(f"unknown torch device {self.device!r}; use cpu or cuda") from None
+        if self.frame_ages:
+            parse_frame_ages(self.frame_ages)  # raises ValueError naming the problem
+            if self.frame_stride != 1:
+                raise ValueError(f"frame_ages {self.frame_ages!r} replace frame_stride; leave frame_stride at 1, "
+                                 f"got {self.frame_stride}")
         if self.camera_grid:
             parse_camera_grid(self.camera_grid)  # raises ValueError naming the problem
             if self.camera == "paper":
@@ -378,12 +386,23 @@ def make_sim_config(cfg: TrainConfig, num_worlds: int, record_paths: bool = Fals
                                          avoid_counts_ground=cfg.avoid_counts_ground))
 
 
+def parse_frame_ages(text: str) -> tuple[int, ...]:
+    """``"3,1,0"`` -> ``(3, 1, 0)``: the stacked frames' ages (``CameraSpec.frame_ages``); ``ValueError`` if bad."""
+    try:
+        ages = tuple(int(part) for part in text.split(","))
+    except ValueError:
+        raise ValueError(f"frame_ages must be comma-separated integers such as 3,1,0, got {text!r}") from None
+    check_frame_ages(ages, CameraSpec().frames)
+    return ages
+
+
 def training_camera(cfg: TrainConfig) -> CameraSpec:
     """The camera a run trains with: its preset (the paper camera at ``image_size`` pixels a side),
-    its frames stacked ``frame_stride`` steps apart."""
+    its frames stacked ``frame_stride`` steps apart (or at ``frame_ages``)."""
+    stack = {"frame_stride": cfg.frame_stride, "frame_ages": parse_frame_ages(cfg.frame_ages) if cfg.frame_ages else ()}
     if cfg.camera == "paper":
-        return CameraSpec(width=cfg.image_size, height=cfg.image_size, frame_stride=cfg.frame_stride)
-    camera = dataclasses.replace(CAMERA_PRESETS[cfg.camera], frame_stride=cfg.frame_stride)
+        return CameraSpec(width=cfg.image_size, height=cfg.image_size, **stack)
+    camera = dataclasses.replace(CAMERA_PRESETS[cfg.camera], **stack)
     if cfg.camera_grid:
         width, height = parse_camera_grid(cfg.camera_grid)
         camera = dataclasses.replace(camera, width=width, height=height)

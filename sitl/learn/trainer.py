@@ -192,7 +192,7 @@ def make_buffer(cfg: TrainConfig, env: SwarmEnv, privileged_dim: int = 0) -> Fra
     cam = env.config.camera
     return FrameReplayBuffer(cfg.replay_capacity, env.num_agents, cam.frames, cam.height, cam.width,
                              STATE_DIM, DEFAULT_ACTION_SPEC.dim, seed=cfg.seed, privileged_dim=privileged_dim,
-                             frame_stride=cam.frame_stride, precollision_steps=cfg.precollision_steps)
+                             frame_ages=cam.stack_ages, precollision_steps=cfg.precollision_steps)
 
 
 def make_trainer(cfg: TrainConfig, agent_cfg: AgentConfig, run_dir: Path, resume: bool = False) -> "Trainer":
