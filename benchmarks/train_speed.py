@@ -1,6 +1,6 @@
 """Training speed: SAC+AE updates per second and environment steps per second.
 
-Measures, on this machine's CPU (``--threads`` torch threads):
+Measures, on this machine's CPU (``--threads`` torch threads) or its GPU (``--device cuda``):
 
 * one full agent update (critic, actor every 2nd, targets, decoder) at batch 128 from a
   filled replay buffer, for each method and image size given;
@@ -21,7 +21,7 @@ processes at once with ``--threads`` threads each, and the last line's ``updates
 (``updates_per_s_per_copy`` lists each); no rollouts.
 
 Usage: ``python benchmarks/train_speed.py [--preset flown-fast] [--sizes 32 64 32x20 48x32]
-[--methods sac_ae cnn drq] [--seconds 10] [--threads 2] [--copies 1] [--smoke]`` (a size is a
+[--methods sac_ae cnn drq] [--seconds 10] [--threads 2] [--device cpu] [--copies 1] [--smoke]`` (a size is a
 square side or WIDTHxHEIGHT of the preset's field of view; ``--smoke``: the preset's configuration
 only, no warm-up update, a fraction of a second per measurement, and the rollouts reuse that agent;
 what CI runs.)
@@ -69,9 +69,11 @@ def preset_configs(preset: str) -> tuple[TrainConfig, AgentConfig]:
     return resolve_configs({"preset": preset, **(first.train if first else {})}, dict(first.agent) if first else {})
 
 
-def make_agent(method: str, camera: CameraSpec, hidden: int, agent_cfg: AgentConfig) -> SacAeAgent:
+def make_agent(method: str, camera: CameraSpec, hidden: int, agent_cfg: AgentConfig,
+               device: str = "cpu") -> SacAeAgent:
     """A freshly initialised agent of ``method`` for ``camera``'s depth images (other values: ``agent_cfg``)."""
-    return SacAeAgent(dataclasses.replace(agent_cfg, method=method, hidden_dim=hidden), camera, DEFAULT_ACTION_SPEC)
+    return SacAeAgent(dataclasses.replace(agent_cfg, method=method, hidden_dim=hidden), camera, DEFAULT_ACTION_SPEC,
+                      device=device)
 
 
 def update_rate(agent: SacAeAgent, seconds: float, warmup_updates: int = 3) -> float:
@@ -91,10 +93,13 @@ def update_rate(agent: SacAeAgent, seconds: float, warmup_updates: int = 3) -> f
                 **(privileged if extra else {}))
     for _ in range(warmup_updates):
         agent.update(buf.sample(128, agent.device))
+    synchronize = torch.cuda.synchronize if agent.device.type == "cuda" else (lambda: None)
+    synchronize()
     count, started = 0, time.perf_counter()
     while time.perf_counter() - started < seconds:
         agent.update(buf.sample(128, agent.device))
         count += 1
+    synchronize()  # a GPU's queued work counts too
     return count / (time.perf_counter() - started)
 
 
@@ -152,6 +157,8 @@ def main() -> None:
                         help="hidden units (default: the preset's, 1024 and 256)")
     parser.add_argument("--seconds", type=float, default=None, help="seconds per measurement (default 10)")
     parser.add_argument("--threads", type=int, default=2, help="torch threads per process (default 2)")
+    parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"],
+                        help="where the updates run (default cpu; rollouts render on the CPU either way)")
     parser.add_argument("--copies", type=int, default=1,
                         help="measure the preset's configuration in this many processes at once and report "
                              "their summed updates/s (runs side by side, as a sweep runs seeds; default 1)")
@@ -185,7 +192,11 @@ def main() -> None:
         parser.error(f"--seconds must be > 0, got {seconds}")
     if args.threads < 1 or args.copies < 1:
         parser.error(f"--threads and --copies must be >= 1, got {args.threads} and {args.copies}")
+    if args.device == "cuda" and not torch.cuda.is_available():
+        parser.error("--device cuda asked for, but torch sees no CUDA device")
     if args.copies > 1:
+        if args.device != "cpu":
+            parser.error("--copies measures CPU processes side by side; leave out --device")
         if args.sizes or args.methods or args.hidden:
             parser.error("--copies measures the preset's configuration only; leave out --sizes, --methods and --hidden")
         per_copy = side_by_side_rates(args.preset, args.copies, args.threads, seconds, args.smoke)
@@ -202,7 +213,7 @@ def main() -> None:
     for grid in grids:
         for method in methods:
             for hidden in hiddens:
-                agent = make_agent(method, grid_camera(grid), hidden, agent_cfg)
+                agent = make_agent(method, grid_camera(grid), hidden, agent_cfg, args.device)
                 key = name(method, grid, hidden)
                 if key == headline:
                     headline_agent = agent  # the rollouts reuse it: one fewer initialisation
@@ -211,11 +222,11 @@ def main() -> None:
                 print(f"{method:7s} {grid[0]}x{grid[1]} hidden {hidden:4d}: {rate:6.2f} updates/s "
                       f"({1000 / rate:6.1f} ms/update)", flush=True)
     env_rate = rollout_rate(seconds, headline_agent or make_agent(agent_cfg.method, camera, agent_cfg.hidden_dim,
-                                                                   agent_cfg), cfg)
+                                                                   agent_cfg, args.device), cfg)
     print(f"rollouts of preset {args.preset} ({cfg.num_worlds} worlds x {cfg.num_uavs} UAVs, {cfg.scenario} scenes, "
           f"actor sampling): {env_rate:.0f} transitions/s", flush=True)
     print(json.dumps({"benchmark": "train_speed", "preset": args.preset, "threads": args.threads,
-                      "updates_per_s": rates.get(headline), "updates_per_s_config": headline,
+                      "device": args.device, "updates_per_s": rates.get(headline), "updates_per_s_config": headline,
                       "env_steps_per_s": round(env_rate), "updates_per_s_by_config": rates}))
 
 

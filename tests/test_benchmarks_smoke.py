@@ -68,3 +68,12 @@ def test_train_speed_measures_copies_side_by_side():
     per_copy = summary["updates_per_s_per_copy"]
     assert summary["copies"] == 2 and len(per_copy) == 2 and all(rate > 0 for rate in per_copy)
     assert summary["updates_per_s"] == pytest.approx(sum(per_copy), abs=0.02)
+
+
+@pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="this machine has a GPU: nothing to refuse")
+def test_train_speed_refuses_a_gpu_it_does_not_have():
+    """``--device cuda`` without a CUDA device: one line, exit 2, no traceback (the GPU path itself
+    was run on a lent H200, docs/training.md 'On a GPU')."""
+    proc = subprocess.run([sys.executable, str(BENCHMARKS / "train_speed.py"), "--smoke", "--device", "cuda"],
+                          cwd=REPO, env=env(), capture_output=True, text=True, timeout=SMOKE_TIMEOUT_S)
+    assert proc.returncode == 2 and "torch sees no CUDA device" in proc.stderr and "Traceback" not in proc.stderr
