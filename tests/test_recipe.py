@@ -96,6 +96,10 @@ def test_stage_scale_lengthens_single_stages_not_their_validations():
     assert [s.train.get("eval_episodes") for s in longer] == [s.train.get("eval_episodes") for s in stages]
     both = scaled_stages(stages, 0.1, (2.0, 1.0, 1.0, 1.0))  # on top of --recipe-scale
     assert [s.train["total_updates"] for s in both] == [1_600, 600, 600, 600]
+    # A quick trial validates in proportion, also in stages that take the run's episode count.
+    trial = scaled_stages(stages, 0.1, default_eval_episodes=40)
+    assert [s.train["eval_episodes"] for s in trial] == [4, 4, 5, 5]
+    assert "eval_episodes" not in scaled_stages(stages, 1.0, (1.5, 1.5, 1.0, 1.0), default_eval_episodes=40)[0].train
     with pytest.raises(ValueError, match="2 stage scale"):
         scaled_stages(stages, 1.0, (1.5, 1.5))
 

@@ -36,8 +36,13 @@ RECIPE_FILE = "recipe.json"
 
 
 def scaled_stages(stages: tuple[RecipeStage, ...], scale: float,
-                  stage_scales: tuple[float, ...] | None = None) -> tuple[RecipeStage, ...]:
+                  stage_scales: tuple[float, ...] | None = None,
+                  default_eval_episodes: int | None = None) -> tuple[RecipeStage, ...]:
     """The stages with their updates, validation intervals and validation episodes times ``scale`` (>= 1 each).
+
+    A stage that sets no ``eval_episodes`` validates with the run's (``default_eval_episodes``); at a
+    ``scale`` other than 1 that number is scaled into the stage too, so that a quick trial validates
+    in proportion (``benchmarks/train_time.py`` extrapolates from it).
 
     ``stage_scales`` (one factor per stage) lengthens or shortens single stages on top of that: their
     updates and validation interval, not their validation episodes (a stage keeps its number of
@@ -53,6 +58,8 @@ def scaled_stages(stages: tuple[RecipeStage, ...], scale: float,
                   if k in st.train}
         if "eval_episodes" in st.train:
             values["eval_episodes"] = scaled(st.train["eval_episodes"], scale)
+        elif scale != 1.0 and default_eval_episodes is not None:
+            values["eval_episodes"] = scaled(default_eval_episodes, scale)
         out.append(replace(st, train={**st.train, **values}))
     return tuple(out)
 
@@ -121,7 +128,7 @@ class Recipe:
         ``evaluation_steps``: the time limit of the rescoring and the final evaluation (default: the
         training episodes' own)."""
         self.cfg, self.agent_cfg, self.run_dir = cfg, agent_cfg, run_dir
-        self.stages = scaled_stages(stages, scale, stage_scales)
+        self.stages = scaled_stages(stages, scale, stage_scales, default_eval_episodes=cfg.eval_episodes)
         self.explicit, self.scale = frozenset(explicit), scale
         self.stage_scales = list(stage_scales) if stage_scales is not None else None
         self.rescore_top, self.rescore_episodes = rescore_top, scaled(rescore_episodes, scale)
