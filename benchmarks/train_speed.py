@@ -2,7 +2,7 @@
 
 Measures, on this machine's CPU (``--threads`` torch threads) or its GPU (``--device cuda``):
 
-* one full agent update (critic, actor every 2nd, targets, decoder) at batch 128 from a
+* one full agent update (critic, actor every 2nd, targets, decoder) at batch 128 (``--batch-size``) from a
   filled replay buffer, for each method and image size given;
 * rollout throughput of the training loop: vectorised environment steps with the actor's
   sampled actions for the preset's worlds of 8 UAVs and its camera (transitions per second;
@@ -21,7 +21,7 @@ processes at once with ``--threads`` threads each, and the last line's ``updates
 (``updates_per_s_per_copy`` lists each); no rollouts.
 
 Usage: ``python benchmarks/train_speed.py [--preset flown-fast] [--sizes 32 64 32x20 48x32]
-[--methods sac_ae cnn drq] [--seconds 10] [--threads 2] [--device cpu] [--copies 1] [--smoke]`` (a size is a
+[--methods sac_ae cnn drq] [--seconds 10] [--threads 2] [--batch-size 128] [--device cpu] [--copies 1] [--smoke]`` (a size is a
 square side or WIDTHxHEIGHT of the preset's field of view; ``--smoke``: the preset's configuration
 only, no warm-up update, a fraction of a second per measurement, and the rollouts reuse that agent;
 what CI runs.)
@@ -76,8 +76,8 @@ def make_agent(method: str, camera: CameraSpec, hidden: int, agent_cfg: AgentCon
                       device=device)
 
 
-def update_rate(agent: SacAeAgent, seconds: float, warmup_updates: int = 3) -> float:
-    """Agent updates per second at batch 128 from a filled replay buffer (random transitions)."""
+def update_rate(agent: SacAeAgent, seconds: float, warmup_updates: int = 3, batch_size: int = 128) -> float:
+    """Agent updates per second at ``batch_size`` from a filled replay buffer (random transitions)."""
     cam = agent.camera
     height, width = cam.height, cam.width
     action_dim = DEFAULT_ACTION_SPEC.dim
@@ -92,12 +92,12 @@ def update_rate(agent: SacAeAgent, seconds: float, warmup_updates: int = 3) -> f
                 rng.uniform(0, 20, (64, height, width)), rng.normal(size=(64, STATE_DIM)), np.zeros(64, bool),
                 **(privileged if extra else {}))
     for _ in range(warmup_updates):
-        agent.update(buf.sample(128, agent.device))
+        agent.update(buf.sample(batch_size, agent.device))
     synchronize = torch.cuda.synchronize if agent.device.type == "cuda" else (lambda: None)
     synchronize()
     count, started = 0, time.perf_counter()
     while time.perf_counter() - started < seconds:
-        agent.update(buf.sample(128, agent.device))
+        agent.update(buf.sample(batch_size, agent.device))
         count += 1
     synchronize()  # a GPU's queued work counts too
     return count / (time.perf_counter() - started)
@@ -157,6 +157,7 @@ def main() -> None:
                         help="hidden units (default: the preset's, 1024 and 256)")
     parser.add_argument("--seconds", type=float, default=None, help="seconds per measurement (default 10)")
     parser.add_argument("--threads", type=int, default=2, help="torch threads per process (default 2)")
+    parser.add_argument("--batch-size", type=int, default=128, help="transitions per update (default 128, the recipes')")
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"],
                         help="where the updates run (default cpu; rollouts render on the CPU either way)")
     parser.add_argument("--copies", type=int, default=1,
@@ -190,13 +191,14 @@ def main() -> None:
         seconds = 10.0 if args.seconds is None else args.seconds
     if seconds <= 0:
         parser.error(f"--seconds must be > 0, got {seconds}")
-    if args.threads < 1 or args.copies < 1:
-        parser.error(f"--threads and --copies must be >= 1, got {args.threads} and {args.copies}")
+    if args.threads < 1 or args.copies < 1 or not 1 <= args.batch_size <= 4096:
+        parser.error(f"--threads and --copies must be >= 1 and --batch-size in 1..4096, got {args.threads}, "
+                     f"{args.copies} and {args.batch_size}")
     if args.device == "cuda" and not torch.cuda.is_available():
         parser.error("--device cuda asked for, but torch sees no CUDA device")
     if args.copies > 1:
-        if args.device != "cpu":
-            parser.error("--copies measures CPU processes side by side; leave out --device")
+        if args.device != "cpu" or args.batch_size != 128:
+            parser.error("--copies measures CPU processes side by side at batch 128; leave out --device and --batch-size")
         if args.sizes or args.methods or args.hidden:
             parser.error("--copies measures the preset's configuration only; leave out --sizes, --methods and --hidden")
         per_copy = side_by_side_rates(args.preset, args.copies, args.threads, seconds, args.smoke)
@@ -217,7 +219,7 @@ def main() -> None:
                 key = name(method, grid, hidden)
                 if key == headline:
                     headline_agent = agent  # the rollouts reuse it: one fewer initialisation
-                rate = update_rate(agent, seconds, warmup_updates=0 if args.smoke else 3)
+                rate = update_rate(agent, seconds, warmup_updates=0 if args.smoke else 3, batch_size=args.batch_size)
                 rates[key] = round(rate, 2)
                 print(f"{method:7s} {grid[0]}x{grid[1]} hidden {hidden:4d}: {rate:6.2f} updates/s "
                       f"({1000 / rate:6.1f} ms/update)", flush=True)
@@ -226,7 +228,7 @@ def main() -> None:
     print(f"rollouts of preset {args.preset} ({cfg.num_worlds} worlds x {cfg.num_uavs} UAVs, {cfg.scenario} scenes, "
           f"actor sampling): {env_rate:.0f} transitions/s", flush=True)
     print(json.dumps({"benchmark": "train_speed", "preset": args.preset, "threads": args.threads,
-                      "device": args.device, "updates_per_s": rates.get(headline), "updates_per_s_config": headline,
+                      "device": args.device, "batch_size": args.batch_size, "updates_per_s": rates.get(headline), "updates_per_s_config": headline,
                       "env_steps_per_s": round(env_rate), "updates_per_s_by_config": rates}))
 
 

@@ -77,3 +77,21 @@ def test_train_speed_refuses_a_gpu_it_does_not_have():
     proc = subprocess.run([sys.executable, str(BENCHMARKS / "train_speed.py"), "--smoke", "--device", "cuda"],
                           cwd=REPO, env=env(), capture_output=True, text=True, timeout=SMOKE_TIMEOUT_S)
     assert proc.returncode == 2 and "torch sees no CUDA device" in proc.stderr and "Traceback" not in proc.stderr
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--batch-size", "0"], "--batch-size in 1..4096"),
+    (["--copies", "2", "--batch-size", "64"], "leave out --device and --batch-size"),
+])
+def test_train_speed_refuses_bad_options_in_one_line(args, message):
+    proc = subprocess.run([sys.executable, str(BENCHMARKS / "train_speed.py"), "--smoke", *args],
+                          cwd=REPO, env=env(), capture_output=True, text=True, timeout=SMOKE_TIMEOUT_S)
+    assert proc.returncode == 2 and message in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_train_speed_measures_another_batch_size():
+    proc = subprocess.run([sys.executable, str(BENCHMARKS / "train_speed.py"), "--smoke", "--batch-size", "32"],
+                          cwd=REPO, env=env(), capture_output=True, text=True, timeout=SMOKE_TIMEOUT_S)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert summary["batch_size"] == 32 and summary["updates_per_s"] > 0
