@@ -228,7 +228,8 @@ def main() -> None:
     print(f"rollouts of preset {args.preset} ({cfg.num_worlds} worlds x {cfg.num_uavs} UAVs, {cfg.scenario} scenes, "
           f"actor sampling): {env_rate:.0f} transitions/s", flush=True)
     print(json.dumps({"benchmark": "train_speed", "preset": args.preset, "threads": args.threads,
-                      "device": args.device, "batch_size": args.batch_size, "updates_per_s": rates.get(headline), "updates_per_s_config": headline,
+                      "device": args.device, "batch_size": args.batch_size,
+                      "updates_per_s": rates.get(headline), "updates_per_s_config": headline,
                       "env_steps_per_s": round(env_rate), "updates_per_s_by_config": rates}))
 
 

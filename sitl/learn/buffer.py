@@ -19,7 +19,6 @@ import numpy as np
 import torch
 
 
-
 class FrameReplayBuffer:
     """Transitions of many agents sharing one policy (centralised training, paper Alg. 1)."""
 
