@@ -152,8 +152,8 @@ class CameraSpec:
             raise ValueError(f"camera frames must be >= 1, got {self.frames}")
         if not 1 <= self.frame_stride <= MAX_FRAME_STRIDE:
             raise ValueError(f"camera frame_stride must be in [1, {MAX_FRAME_STRIDE}], got {self.frame_stride}")
+        object.__setattr__(self, "frame_ages", tuple(int(a) for a in self.frame_ages))  # a JSON list reads back
         if self.frame_ages:
-            object.__setattr__(self, "frame_ages", tuple(int(a) for a in self.frame_ages))
             check_frame_ages(self.frame_ages, self.frames)
             if self.frame_stride != 1:
                 raise ValueError(f"camera frame_ages {list(self.frame_ages)} replace frame_stride, which must then be 1, "
@@ -203,7 +203,8 @@ class CameraSpec:
         return math.radians(self.mount_pitch_deg)
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        """The fields as JSON-native values (``frame_ages`` a list), so a JSON round trip compares equal."""
+        return {**asdict(self), "frame_ages": list(self.frame_ages)}
 
 
 #: Largest number of control steps between two stacked frames a spec or a policy file may declare.
