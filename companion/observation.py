@@ -255,6 +255,9 @@ class DepthFrameStack:
 
     def __init__(self, num_stacks: int, camera: CameraSpec) -> None:
         self.camera = camera
+        # Which remembered images the policy sees: fixed by the camera, so looked up once, not every step.
+        self._columns = list(camera.history_columns)
+        self._consecutive = len(self._columns) == camera.history_frames
         self.history = np.full(
             (num_stacks, camera.history_frames, camera.height, camera.width), camera.max_range_m, dtype=np.float32
         )
@@ -263,10 +266,9 @@ class DepthFrameStack:
     def frames(self) -> np.ndarray:
         """The policy's ``depth`` input [num_stacks, frames, H, W] (oldest first): the history itself
         (a view) for consecutive frames, else a copy of the images at ``camera.history_columns``."""
-        columns = self.camera.history_columns
-        if len(columns) == self.history.shape[1]:
+        if self._consecutive:
             return self.history
-        return np.ascontiguousarray(self.history[:, list(columns)])
+        return np.ascontiguousarray(self.history[:, self._columns])
 
     def reset(self, first_frame: np.ndarray, index: np.ndarray | slice = slice(None)) -> None:
         """Fill the stacks at ``index`` with ``first_frame`` ([k, H, W] or [H, W])."""
