@@ -15,13 +15,18 @@ RealSense D435 preset's 32x20 grid, 512 hidden units, the decoder every second u
 2026-11-25) and ``env_steps_per_s`` (agent transitions per second while acting), plus every
 configuration measured.
 
+``--profile`` also runs the preset's update under ``torch.profiler`` and prints where its time goes
+(convolutions forward and backward, matrix products, optimiser steps, the rest), as shares of the
+profiled CPU time; the last line then carries ``profile_shares``.
+
 ``--copies N`` answers another question: how fast do N runs side by side go (a sweep's seeds on one
 machine, ``python -m sitl.sweep --cpus-per-run``)? It measures the preset's configuration only, in N
 processes at once with ``--threads`` threads each, and the last line's ``updates_per_s`` is their sum
 (``updates_per_s_per_copy`` lists each); no rollouts.
 
 Usage: ``python benchmarks/train_speed.py [--preset flown-fast] [--sizes 32 64 32x20 48x32]
-[--methods sac_ae cnn drq] [--seconds 10] [--threads 2] [--batch-size 128] [--device cpu] [--copies 1] [--smoke]`` (a size is a
+[--methods sac_ae cnn drq] [--seconds 10] [--threads 2] [--batch-size 128] [--num-filters N] [--device cpu] [--copies 1]
+[--profile] [--smoke]`` (a size is a
 square side or WIDTHxHEIGHT of the preset's field of view; ``--smoke``: the preset's configuration
 only, no warm-up update, a fraction of a second per measurement, and the rollouts reuse that agent;
 what CI runs.)
@@ -103,6 +108,35 @@ def update_rate(agent: SacAeAgent, seconds: float, warmup_updates: int = 3, batc
     return count / (time.perf_counter() - started)
 
 
+#: torch.profiler operator names -> the part of an update they belong to (``--profile``); anything else is "other".
+PROFILE_PARTS = {
+    "convolution forward": ("aten::mkldnn_convolution", "aten::_convolution", "aten::slow_conv_transpose2d",
+                            "aten::convolution"),
+    "convolution backward": ("aten::convolution_backward",),
+    "matrix products": ("aten::addmm", "aten::mm", "aten::bmm"),
+    "optimiser steps": ("Optimizer.step#Adam.step", "aten::addcdiv_", "aten::addcmul_", "aten::lerp_", "aten::sqrt",
+                        "aten::mul_", "Optimizer.zero_grad#Adam.zero_grad"),
+}
+
+
+def update_profile(agent: SacAeAgent, seconds: float, batch_size: int = 128) -> dict[str, float]:
+    """Shares of an update's CPU time by part (:data:`PROFILE_PARTS`), from ``torch.profiler``'s self times.
+
+    ``aten::lerp_`` is the targets' moving average and ``aten::sqrt`` Adam's; both count as optimiser
+    steps. Self times are each operator's own, so no time is counted twice."""
+    from torch.profiler import ProfilerActivity, profile
+    update_rate(agent, min(seconds, 2.0), batch_size=batch_size)  # warm caches outside the profile
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        update_rate(agent, seconds, warmup_updates=0, batch_size=batch_size)
+    self_us = {event.key: event.self_cpu_time_total for event in prof.key_averages()}
+    total = sum(self_us.values()) or 1.0
+    part_of = {op: part for part, ops in PROFILE_PARTS.items() for op in ops}
+    shares = dict.fromkeys([*PROFILE_PARTS, "other"], 0.0)
+    for op, us in self_us.items():
+        shares[part_of.get(op, "other")] += us / total
+    return {part: round(share, 3) for part, share in shares.items()}
+
+
 def copy_update_rate(job: tuple[str, int, float, bool, object]) -> float:
     """One of ``--copies``' processes: the preset's configuration's update rate at ``threads`` threads.
 
@@ -158,6 +192,11 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=None, help="seconds per measurement (default 10)")
     parser.add_argument("--threads", type=int, default=2, help="torch threads per process (default 2)")
     parser.add_argument("--batch-size", type=int, default=128, help="transitions per update (default 128, the recipes')")
+    parser.add_argument("--num-filters", type=int, default=None,
+                        help="convolution filters per encoder layer in every measured configuration (default: the "
+                             "preset's, the paper's 32)")
+    parser.add_argument("--profile", action="store_true",
+                        help="also profile the preset's update with torch.profiler and print its time by part")
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"],
                         help="where the updates run (default cpu; rollouts render on the CPU either way)")
     parser.add_argument("--copies", type=int, default=1,
@@ -176,7 +215,8 @@ def main() -> None:
         return dataclasses.replace(camera, width=grid[0], height=grid[1])
 
     def name(method: str, grid: tuple[int, int], hidden: int) -> str:
-        return f"{method}_{grid[0]}x{grid[1]}px_h{hidden}"
+        width = f"_f{args.num_filters}" if args.num_filters is not None else ""  # the preset's width goes unnamed
+        return f"{method}_{grid[0]}x{grid[1]}px_h{hidden}{width}"
 
     headline = name(agent_cfg.method, preset_grid, agent_cfg.hidden_dim)
     if args.smoke:
@@ -194,13 +234,18 @@ def main() -> None:
     if args.threads < 1 or args.copies < 1 or not 1 <= args.batch_size <= 4096:
         parser.error(f"--threads and --copies must be >= 1 and --batch-size in 1..4096, got {args.threads}, "
                      f"{args.copies} and {args.batch_size}")
+    if args.num_filters is not None:
+        if not 1 <= args.num_filters <= 256:
+            parser.error(f"--num-filters must be in 1..256, got {args.num_filters}")
+        agent_cfg = dataclasses.replace(agent_cfg, num_filters=args.num_filters)
     if args.device == "cuda" and not torch.cuda.is_available():
         parser.error("--device cuda asked for, but torch sees no CUDA device")
     if args.copies > 1:
         if args.device != "cpu" or args.batch_size != 128:
             parser.error("--copies measures CPU processes side by side at batch 128; leave out --device and --batch-size")
-        if args.sizes or args.methods or args.hidden:
-            parser.error("--copies measures the preset's configuration only; leave out --sizes, --methods and --hidden")
+        if args.sizes or args.methods or args.hidden or args.num_filters or args.profile:
+            parser.error("--copies measures the preset's configuration only; leave out --sizes, --methods, --hidden, "
+                         "--num-filters and --profile")
         per_copy = side_by_side_rates(args.preset, args.copies, args.threads, seconds, args.smoke)
         print(f"{args.copies} copies of {headline} side by side, {args.threads} thread(s) each: "
               f"{', '.join(f'{rate:.2f}' for rate in per_copy)} updates/s; {sum(per_copy):.2f} in all", flush=True)
@@ -227,10 +272,17 @@ def main() -> None:
                                                                    agent_cfg, args.device), cfg)
     print(f"rollouts of preset {args.preset} ({cfg.num_worlds} worlds x {cfg.num_uavs} UAVs, {cfg.scenario} scenes, "
           f"actor sampling): {env_rate:.0f} transitions/s", flush=True)
-    print(json.dumps({"benchmark": "train_speed", "preset": args.preset, "threads": args.threads,
-                      "device": args.device, "batch_size": args.batch_size,
-                      "updates_per_s": rates.get(headline), "updates_per_s_config": headline,
-                      "env_steps_per_s": round(env_rate), "updates_per_s_by_config": rates}))
+    summary = {"benchmark": "train_speed", "preset": args.preset, "threads": args.threads,
+               "device": args.device, "batch_size": args.batch_size, "num_filters": agent_cfg.num_filters,
+               "updates_per_s": rates.get(headline), "updates_per_s_config": headline,
+               "env_steps_per_s": round(env_rate), "updates_per_s_by_config": rates}
+    if args.profile:
+        shares = update_profile(headline_agent or make_agent(agent_cfg.method, camera, agent_cfg.hidden_dim, agent_cfg,
+                                                             args.device), seconds, args.batch_size)
+        print(f"{headline}'s update by part (torch.profiler self CPU time): "
+              + ", ".join(f"{part} {share:.0%}" for part, share in shares.items()), flush=True)
+        summary["profile_shares"] = shares
+    print(json.dumps(summary))
 
 
 if __name__ == "__main__":

@@ -82,6 +82,8 @@ def test_train_speed_refuses_a_gpu_it_does_not_have():
 @pytest.mark.parametrize("args, message", [
     (["--batch-size", "0"], "--batch-size in 1..4096"),
     (["--copies", "2", "--batch-size", "64"], "leave out --device and --batch-size"),
+    (["--num-filters", "0"], "--num-filters must be in 1..256"),
+    (["--copies", "2", "--profile"], "leave out --sizes, --methods, --hidden, --num-filters and --profile"),
 ])
 def test_train_speed_refuses_bad_options_in_one_line(args, message):
     proc = subprocess.run([sys.executable, str(BENCHMARKS / "train_speed.py"), "--smoke", *args],
@@ -95,3 +97,17 @@ def test_train_speed_measures_another_batch_size():
     assert proc.returncode == 0, proc.stderr[-3000:]
     summary = json.loads(proc.stdout.strip().splitlines()[-1])
     assert summary["batch_size"] == 32 and summary["updates_per_s"] > 0
+
+
+def test_train_speed_profiles_a_narrower_encoder():
+    """``--num-filters 16 --profile``: the measured agent has 16 filters, and the update's time by part
+    adds up to the whole, most of it in convolutions and matrix products (not a constant: read from
+    torch.profiler on this run)."""
+    proc = subprocess.run([sys.executable, str(BENCHMARKS / "train_speed.py"), "--smoke", "--num-filters", "16",
+                           "--profile"], cwd=REPO, env=env(), capture_output=True, text=True, timeout=SMOKE_TIMEOUT_S)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads(proc.stdout.strip().splitlines()[-1])
+    shares = summary["profile_shares"]
+    assert summary["num_filters"] == 16 and summary["updates_per_s"] > 0
+    assert sum(shares.values()) == pytest.approx(1.0, abs=0.01)
+    assert shares["convolution forward"] + shares["convolution backward"] + shares["matrix products"] > 0.3
