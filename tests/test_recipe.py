@@ -216,3 +216,24 @@ def test_a_rerun_with_the_same_seed_gives_the_same_policy_another_seed_another(t
     np.testing.assert_array_equal(_actions(one_go), _actions(resumed))
     assert scores("a") == scores("b")
     assert np.abs(_actions(one_go) - _actions(other)).max() > 1e-3
+
+
+def test_a_stage_header_names_the_flags_that_replace_its_settings(tmp_path):
+    """A flag given on the command line beats what a stage sets (``stage_configs``); the stage's header
+    says so, since its description is the preset's words ("random scene" while the flag says circle)."""
+    cfg, agent_cfg = tiny_configs(tmp_path)
+    headers: list[str] = []
+
+    def log(message: str) -> None:
+        if message.startswith("=== stage"):
+            headers.append(message)
+            raise Interrupt  # the header is all this test needs: no training
+
+    for explicit, run_cfg in ((frozenset(), cfg), (frozenset({"scenario"}), replace(cfg, scenario="circle"))):
+        run_dir = tmp_path / f"run{len(headers)}"
+        run_dir.mkdir()
+        with pytest.raises(Interrupt):
+            Recipe(run_cfg, agent_cfg, STAGES, run_dir, rescore_top=2, rescore_episodes=2, explicit=explicit,
+                   log=log).run()
+    assert "command line" not in headers[0]
+    assert "random scene" in headers[1] and "from the command line instead: scenario circle" in headers[1]

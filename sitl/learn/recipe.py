@@ -172,8 +172,12 @@ class Recipe:
             if sdir.exists():
                 shutil.rmtree(sdir)  # started but never checkpointed: nothing worth keeping
             _write_config(sdir, cfg, agent_cfg)
+        # The description is the preset's words; say where a flag changed what the stage would set.
+        overridden = [f"{k} {getattr(c, k)}" for fields, c in ((stage.train, cfg), (stage.agent, agent_cfg))
+                      for k in fields if k in self.explicit]
+        flags = f"; from the command line instead: {', '.join(overridden)}" if overridden else ""
         self.log(f"=== stage {index + 1}/{len(self.stages)} '{stage.name}': {stage.description} "
-                 f"({cfg.total_updates} updates{', resumed' if resume else ''}; {self._eta(index)})")
+                 f"({cfg.total_updates} updates{', resumed' if resume else ''}{flags}; {self._eta(index)})")
         started = time.perf_counter()
         trainer = make_trainer(cfg, agent_cfg, sdir, resume=resume)
         trainer.name_stage(f"stage {index + 1}/{len(self.stages)} '{stage.name}'")
