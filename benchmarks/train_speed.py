@@ -2,7 +2,7 @@
 
 Measures, on this machine's CPU (``--threads`` torch threads) or its GPU (``--device cuda``):
 
-* one full agent update (critic, actor every 2nd, targets, decoder) at batch 128 (``--batch-size``) from a
+* one full agent update (critic, actor every 2nd, targets, decoder) at the preset's batch (128; ``--batch-size``) from a
   filled replay buffer, for each method and image size given;
 * rollout throughput of the training loop: vectorised environment steps with the actor's
   sampled actions for the preset's worlds of 8 UAVs and its camera (transitions per second;
@@ -81,7 +81,7 @@ def make_agent(method: str, camera: CameraSpec, hidden: int, agent_cfg: AgentCon
                       device=device)
 
 
-def update_rate(agent: SacAeAgent, seconds: float, warmup_updates: int = 3, batch_size: int = 128) -> float:
+def update_rate(agent: SacAeAgent, seconds: float, batch_size: int, warmup_updates: int = 3) -> float:
     """Agent updates per second at ``batch_size`` from a filled replay buffer (random transitions)."""
     cam = agent.camera
     height, width = cam.height, cam.width
@@ -119,15 +119,15 @@ PROFILE_PARTS = {
 }
 
 
-def update_profile(agent: SacAeAgent, seconds: float, batch_size: int = 128) -> dict[str, float]:
+def update_profile(agent: SacAeAgent, seconds: float, batch_size: int) -> dict[str, float]:
     """Shares of an update's CPU time by part (:data:`PROFILE_PARTS`), from ``torch.profiler``'s self times.
 
     ``aten::lerp_`` is the targets' moving average and ``aten::sqrt`` Adam's; both count as optimiser
     steps. Self times are each operator's own, so no time is counted twice."""
     from torch.profiler import ProfilerActivity, profile
-    update_rate(agent, min(seconds, 2.0), batch_size=batch_size)  # warm caches outside the profile
+    update_rate(agent, min(seconds, 2.0), batch_size)  # warm caches outside the profile
     with profile(activities=[ProfilerActivity.CPU]) as prof:
-        update_rate(agent, seconds, warmup_updates=0, batch_size=batch_size)
+        update_rate(agent, seconds, batch_size, warmup_updates=0)
     self_us = {event.key: event.self_cpu_time_total for event in prof.key_averages()}
     total = sum(self_us.values()) or 1.0
     part_of = {op: part for part, ops in PROFILE_PARTS.items() for op in ops}
@@ -147,7 +147,7 @@ def copy_update_rate(job: tuple[str, int, float, bool, object]) -> float:
     cfg, agent_cfg = preset_configs(preset)
     agent = make_agent(agent_cfg.method, training_camera(cfg), agent_cfg.hidden_dim, agent_cfg)
     barrier.wait()
-    return update_rate(agent, seconds, warmup_updates=0 if smoke else 3)
+    return update_rate(agent, seconds, cfg.batch_size, warmup_updates=0 if smoke else 3)
 
 
 def side_by_side_rates(preset: str, copies: int, threads: int, seconds: float, smoke: bool) -> list[float]:
@@ -191,7 +191,8 @@ def main() -> None:
                         help="hidden units (default: the preset's, 1024 and 256)")
     parser.add_argument("--seconds", type=float, default=None, help="seconds per measurement (default 10)")
     parser.add_argument("--threads", type=int, default=2, help="torch threads per process (default 2)")
-    parser.add_argument("--batch-size", type=int, default=128, help="transitions per update (default 128, the recipes')")
+    parser.add_argument("--batch-size", type=int, default=None,
+                        help="transitions per update (default: the preset's, 128 in every recipe)")
     parser.add_argument("--num-filters", type=int, default=None,
                         help="convolution filters per encoder layer in every measured configuration (default: the "
                              "preset's, the paper's 32)")
@@ -207,6 +208,7 @@ def main() -> None:
                              "per measurement")
     args = parser.parse_args()
     cfg, agent_cfg = preset_configs(args.preset)
+    args.batch_size = cfg.batch_size if args.batch_size is None else args.batch_size
     camera = training_camera(cfg)
     preset_grid = (camera.width, camera.height)
 
@@ -241,8 +243,9 @@ def main() -> None:
     if args.device == "cuda" and not torch.cuda.is_available():
         parser.error("--device cuda asked for, but torch sees no CUDA device")
     if args.copies > 1:
-        if args.device != "cpu" or args.batch_size != 128:
-            parser.error("--copies measures CPU processes side by side at batch 128; leave out --device and --batch-size")
+        if args.device != "cpu" or args.batch_size != cfg.batch_size:
+            parser.error("--copies measures CPU processes side by side at the preset's batch; leave out --device and "
+                         "--batch-size")
         if args.sizes or args.methods or args.hidden or args.num_filters or args.profile:
             parser.error("--copies measures the preset's configuration only; leave out --sizes, --methods, --hidden, "
                          "--num-filters and --profile")
@@ -264,7 +267,7 @@ def main() -> None:
                 key = name(method, grid, hidden)
                 if key == headline:
                     headline_agent = agent  # the rollouts reuse it: one fewer initialisation
-                rate = update_rate(agent, seconds, warmup_updates=0 if args.smoke else 3, batch_size=args.batch_size)
+                rate = update_rate(agent, seconds, args.batch_size, warmup_updates=0 if args.smoke else 3)
                 rates[key] = round(rate, 2)
                 print(f"{method:7s} {grid[0]}x{grid[1]} hidden {hidden:4d}: {rate:6.2f} updates/s "
                       f"({1000 / rate:6.1f} ms/update)", flush=True)
