@@ -16,7 +16,8 @@ ideal depth). Target (issue 15): the 2 m flight of 15 m arrives within 20 s. The
 output is one JSON object.
 
 Usage: ``python benchmarks/low_flight.py [--policy models/policy.pt] [--altitudes 2 3 5]
-[--distance 15] [--smoke]`` (``--smoke``: one 2 m flight of 5 m; what CI runs).
+[--distance 15] [--governor] [--smoke]`` (``--smoke``: one 2 m flight of 5 m; what CI runs;
+``--governor``: the companion with its speed governor).
 """
 
 from __future__ import annotations
@@ -46,7 +47,7 @@ def vehicle_camera(policy: Path) -> str:
 
 
 def fly(policy: Path, camera: str, altitude_m: float, distance_m: float, folder: Path,
-        timeout_s: float = FLIGHT_TIMEOUT_S) -> dict:
+        timeout_s: float = FLIGHT_TIMEOUT_S, governor: bool = False) -> dict:
     """One flight from the ground; the measured figures (see the module doc)."""
     folder.mkdir(parents=True, exist_ok=True)
     mav, depth = free_udp_ports(2)
@@ -61,7 +62,7 @@ def fly(policy: Path, camera: str, altitude_m: float, distance_m: float, folder:
         "-m", "companion.cli", "--connect", f"udpin:127.0.0.1:{mav}", "--model", str(policy),
         "--camera", f"sitl:{depth}", "--arm", "--takeoff", f"{altitude_m:g}",
         "--goal", ",".join(f"{v:g}" for v in goal), "--exit-on-arrival", "--timeout", f"{timeout_s:g}",
-        "--heartbeat-timeout", "60", "--log", str(clog)])
+        "--heartbeat-timeout", "60", "--log", str(clog), *(["--governor"] if governor else [])])
     try:
         code = companion.wait(timeout=timeout_s + 90)
     finally:
@@ -91,6 +92,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None, help="keep the logs here (default: a scratch directory)")
     parser.add_argument("--timeout", type=float, default=None,
                         help=f"companion --timeout per flight in s (default {FLIGHT_TIMEOUT_S:g}; 30 with --smoke)")
+    parser.add_argument("--governor", action="store_true", help="fly the companion with --governor (docs/companion.md)")
     parser.add_argument("--smoke", action="store_true", help="CI check: one 2 m flight of 5 m")
     args = parser.parse_args()
     altitudes = args.altitudes or ([2.0] if args.smoke else [2.0, 3.0, 5.0])
@@ -105,14 +107,15 @@ def main() -> None:
         base = args.out or Path(scratch)
         for alt in altitudes:
             row = fly(args.policy, camera, alt, distance, base / f"alt_{alt:g}",
-                      args.timeout or (30.0 if args.smoke else FLIGHT_TIMEOUT_S))
+                      args.timeout or (30.0 if args.smoke else FLIGHT_TIMEOUT_S), args.governor)
             rows.append(row)
             print(f"takeoff {alt:g} m, goal {distance:g} m ahead: "
                   + (f"arrived in {row['flight_s']:.1f} s, {row['arrival_error_m']:.2f} m off, altitude "
                      f"{row['min_alt_m']:.1f}-{row['max_alt_m']:.1f} m" if "flight_s" in row
                      else f"did not arrive ({row.get('error', 'timeout')})"), flush=True)
     two = next((r for r in rows if r["altitude_m"] == 2.0 and distance == 15.0), None)
-    print(json.dumps({"benchmark": "low_flight", "policy": str(args.policy), "camera": camera, "flights": rows,
+    print(json.dumps({"benchmark": "low_flight", "policy": str(args.policy), "camera": camera,
+                      "governor": args.governor, "flights": rows,
                       "target_flight_s": TARGET_FLIGHT_S,
                       "target_met": None if two is None else bool(two.get("flight_s", 1e9) <= TARGET_FLIGHT_S)}))
 

@@ -24,6 +24,7 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
+from companion.governor import GovernorSpec
 from companion.flightlog import DEFAULT_LOG_KEEP, DEFAULT_LOG_MAX_MB
 from companion.recording import DEFAULT_RECORD_KEEP, DEFAULT_RECORD_MAX_MB
 from companion.spec import (
@@ -233,6 +234,12 @@ def build_parser() -> argparse.ArgumentParser:
     flight.add_argument("--obstacle-distance", action=argparse.BooleanOptionalAction, default=True,
                         help="publish MAVLink OBSTACLE_DISTANCE (72 bins, body FRD) from every depth frame, for the "
                              "autopilot's own collision prevention (default on; docs/companion.md)")
+    flight.add_argument("--governor", action="store_true",
+                        help="speed governor after the policy: cap the forward speed so the vehicle stops "
+                             f"{GovernorSpec().stop_distance_m:g} m before the nearest depth point in a "
+                             f"+-{GovernorSpec().corridor_half_width_m:g} m corridor ahead, and turn towards the freer "
+                             "side when that stops it (PX4's collision prevention does nothing in Offboard; default "
+                             "off: among poles it trades collisions for stalls, docs/companion.md)")
     output = parser.add_argument_group("output")
     output.add_argument("--log", type=_output_file, default="-", metavar="PATH",
                         help="JSON-lines log of every control step and event (default '-': stdout)")
@@ -391,7 +398,8 @@ def _fly(args: argparse.Namespace, log) -> int:
                                  land_on_arrival=args.land_on_arrival, exit_on_arrival=args.exit_on_arrival,
                                  timeout_s=args.timeout, link_timeout_s=args.link_timeout,
                                  stream_rate_hz=args.stream_rate, camera_sync=not args.no_camera_sync,
-                                 obstacle_distance=args.obstacle_distance)
+                                 obstacle_distance=args.obstacle_distance,
+                                 governor=GovernorSpec() if args.governor else None)
         notifier = SystemdNotifier()
         companion = Companion(policy, depth, link, config, log, recorder, notifier)
         notifier.ready(f"model, camera and link up ({hb.kind.value}, system {hb.sysid})")

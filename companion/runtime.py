@@ -81,6 +81,7 @@ from companion.flight_modes import (
 )
 from companion.inference import InferenceWorker
 from companion.observation import DepthFrameStack, build_state
+from companion.governor import GovernorSpec, SpeedGovernor
 from companion.obstacle_distance import ObstacleDistancePublisher
 from companion.policy import LoadedPolicy, torchscript_error_line
 from companion.recording import FlightRecorder
@@ -173,6 +174,7 @@ class CompanionConfig:
     camera_sync: bool = True
     takeoff_timeout_s: float = 60.0
     obstacle_distance: bool = True  # publish OBSTACLE_DISTANCE per depth frame (companion.obstacle_distance)
+    governor: GovernorSpec | None = None  # speed governor after the policy (companion.governor); None: off
 
 
 class Companion:
@@ -196,6 +198,7 @@ class Companion:
         self.high = policy.action.high_array().astype(np.float64)
         self.stack = DepthFrameStack(1, policy.camera)
         self.obstacles = ObstacleDistancePublisher(policy.camera, link) if config.obstacle_distance else None
+        self.governor = SpeedGovernor(policy.camera, config.governor) if config.governor is not None else None
         self.goal_ned = None if config.goal_ned is None else np.asarray(config.goal_ned, dtype=np.float64)
 
         self.phase = FlightPhase.WAITING_FOR_TELEMETRY
@@ -238,6 +241,8 @@ class Companion:
         self._last_summary_s = time.monotonic()
         self.holds = 0
         self.policy_steps = 0
+        self.governed_steps = 0  # policy steps whose forward speed the governor lowered
+        self._governor_turning = np.zeros(1, dtype=np.float32)  # the governor's turn in progress (sticky)
 
     # ================================================================== main loop
     def run(self) -> ExitCode:
@@ -467,6 +472,7 @@ class Companion:
         self.log.step(
             step=self.step_index, phase=self.phase.value, mode=hb.mode if hb else None, armed=hb.armed if hb else None,
             sent=command is not None, hold=hold, cmd=command, policy=info.get("policy"), clamped=info.get("clamped", False),
+            governor=info.get("governor"),
             pos_ned=None if odom is None else odom.pos_ned, goal_ned=self.goal_ned,
             dist_m=info.get("dist_m"),
             depth_age_ms=None if self.latest_frame is None else (now - self.latest_frame.arrival_s) * 1000.0,
@@ -726,6 +732,7 @@ class Companion:
         # something training never shows (the simulator renders a new frame every step).
         if now - self._last_pushed_s > self.stale_s:
             self.stack.reset(frame.depth_m)
+            self._governor_turning[:] = 0.0  # a turn decided before the gap is not carried over it
             self._stack_seqs = [frame.seq] * self.policy.camera.history_frames
             info["stacked"] = "reset"
         elif frame.arrival_s > self._last_stacked_arrival_s:
@@ -759,6 +766,13 @@ class Companion:
             return self._hold(info)
         command = np.clip(raw, self.low, self.high)
         info["clamped"] = bool(np.any(command != raw))
+        if self.governor is not None:  # on the newest frame the policy saw, as in the simulator's evaluation
+            governed, capped, nearest, self._governor_turning = self.governor.apply(
+                self.stack.frames[:, -1], command[None], self._governor_turning)
+            info["governor"] = {"nearest_m": float(nearest[0]) if np.isfinite(nearest[0]) else None,
+                                "capped": bool(capped[0]), "turned": bool(governed[0, 2] != command[2])}
+            self.governed_steps += int(capped[0])
+            command = governed[0].astype(np.float64)
         info["policy_step"] = True
         self.policy_steps += 1
         self._note_hold(None)
@@ -1076,7 +1090,7 @@ class Companion:
 
         self.log.summary(
             final=final, window="flight" if final else "10 s", steps=self.step_index,
-            policy_steps=self.policy_steps, holds=self.holds,
+            policy_steps=self.policy_steps, holds=self.holds, governed_steps=self.governed_steps,
             frame_to_setpoint_ms=stats(self.latency_s), inference_ms=stats(self.inference_s),
             tick_late_ms=stats(self.tick_late_s), period_jitter_ms=stats(self.period_dev_s),
             overruns=self.overruns, missed_ticks=self.clock.missed_ticks,

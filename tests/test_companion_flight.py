@@ -8,6 +8,7 @@ scenarios start together (:class:`ScenarioPool`) so their real-time flights over
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import socket
@@ -78,12 +79,20 @@ def _start_obstacle(rig: Rig, tmp) -> None:
                         "--timeout", "10", "--record", str(rig.record))
 
 
+def _start_governor(rig: Rig, tmp) -> None:
+    rig.trace = tmp / "trace.jsonl"  # the vehicle's true positions at 10 Hz
+    rig.start_vehicle("--airborne", "--start", "0,0,-3", "--cylinder", "10,0,0.5", "--trace", str(rig.trace))
+    rig.start_companion(make_policy(tmp / "policy.pt"), "--goal", "20,0,-3", "--arm", "--takeoff", "3", "--governor",
+                        "--exit-on-arrival", "--timeout", "60")
+
+
 @pytest.fixture(scope="module")
 def rigs(request, tmp_path_factory):
     pool = ScenarioPool(request, tmp_path_factory, {
         "px4_15m": _start_px4_15m, "ardupilot_15m": _start_ardupilot_15m, "pilot_engages": _start_pilot_engages,
         "gcs_goal": _start_gcs_goal,
-        "signing": _start_signing, "unsigned_companion": _start_unsigned_companion, "obstacle": _start_obstacle})
+        "signing": _start_signing, "unsigned_companion": _start_unsigned_companion, "obstacle": _start_obstacle,
+        "governor": _start_governor})
     yield pool
     pool.stop_all()
 
@@ -281,3 +290,22 @@ def test_depth_stops_the_vehicle_before_an_obstacle_and_the_recording_replays(ri
     near = [s["policy"][0] for s in steps if centre_m[s["frame_seq"]] < 3.9]
     far = [s["policy"][0] for s in steps if centre_m[s["frame_seq"]] > 4.1]
     assert near and far and all(v == 0.0 for v in near) and all(v > 0.0 for v in far)
+
+
+@scenario("governor")
+def test_the_governor_takes_a_policy_that_never_brakes_round_a_pole(rigs):
+    """companion --governor: a goal seeker that flies at full speed straight through a 0.5 m pole stops
+    short of it, turns away, slides round it and arrives, never within touching distance."""
+    rig = rigs["governor"]
+    code = rig.wait_companion(90)
+    rig.procs.stop_all()
+    assert code == 0, rig.procs.stderr("companion")[-3000:]
+    (arrived,) = _events(rig, "arrived")
+    assert arrived["dist_m"] <= 0.5
+    governed = [s for s in _steps(rig) if s.get("governor")]
+    capped = [s for s in governed if s["governor"]["capped"]]
+    assert capped and all(s["cmd"][0] < s["policy"][0] for s in capped)  # it slowed what the policy asked for
+    assert any(s["governor"]["turned"] for s in governed)
+    track = np.array([p for line in rig.trace.read_text().splitlines() for p in [json.loads(line)["pos_ned"][0]]])
+    closest_m = float(np.hypot(track[:, 0] - 10.0, track[:, 1]).min())
+    assert closest_m > 0.5 + 0.3, closest_m  # the pole's radius plus the vehicle's collision radius R

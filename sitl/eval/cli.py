@@ -38,6 +38,7 @@ import signal
 import sys
 from pathlib import Path
 
+from companion.governor import GovernorSpec
 from companion.spec import DEFAULT_TASK_SPEC
 from sitl.cli_args import (
     ArgumentParser,
@@ -71,6 +72,14 @@ MAX_BATCH = 10_000
 
 
 MAX_RADIUS_M = 10_000.0
+
+
+def _add_governor(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--governor", action="store_true",
+                        help="apply the companion's speed governor (companion --governor: stop before what is straight "
+                             f"ahead, turn away when stopped; {GovernorSpec().stop_distance_m:g} m stop distance, "
+                             f"{GovernorSpec().corridor_half_width_m:g} m corridor) to the controller's commands; "
+                             "its label gains +governor, the straight reference stays plain")
 
 
 def _add_common(parser: argparse.ArgumentParser) -> None:
@@ -114,6 +123,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         help="do not fly the straight-to-goal reference beside the controller")
     parser.add_argument("--plot-episodes", type=int_range(0), default=1,
                         help="episodes to draw as trajectory figures (default 1; 0: none)")
+    _add_governor(parser)
     mav = parser.add_argument_group("the whole stack over MAVLink (--mavlink)")
     mav.add_argument("--mavlink", action="store_true",
                      help="fly the episodes with sitl.vehicle and N real companion processes in real time")
@@ -190,6 +200,8 @@ def run_single(args: argparse.Namespace) -> int:
         method = resolve_method(args.policy)
     except EvaluationError as err:
         args.parser.error(str(err))
+    if args.governor:
+        method = method.with_governor(GovernorSpec())
     if method.kind == "policy":
         import torch
 
@@ -198,7 +210,7 @@ def run_single(args: argparse.Namespace) -> int:
                             dynamics=args.dynamics, camera_noise=args.camera_noise, max_episode_steps=args.max_steps,
                             batch_worlds=args.batch, camera=args.camera)
     methods = [method]
-    if args.reference and not (method.kind == "baseline" and method.label == "straight"):
+    if args.reference and method.label != "straight":
         methods.append(resolve_method("straight"))
     results: list[EvalResult] = []
     try:
@@ -402,6 +414,7 @@ def parse_flown_args(argv: list[str] | None = None) -> argparse.Namespace:
                         help=f"episode time limit in control steps (default {DEFAULT_TASK_SPEC.max_episode_steps})")
     parser.add_argument("--no-reference", dest="reference", action="store_false",
                         help="do not fly the straight-to-goal reference beside the controller")
+    _add_governor(parser)
     parser.add_argument("--batch", type=int_range(1, MAX_BATCH), default=100,
                         help="episodes flown at once as parallel worlds (default 100)")
     parser.add_argument("--threads", type=int_range(1, MAX_THREADS), default=2, help="torch threads for the policy (default 2)")
@@ -416,7 +429,7 @@ def flown_main(argv: list[str] | None = None) -> int:
 
     args = parse_flown_args(argv)
     try:
-        methods = protocol_methods(args.policy, args.reference)
+        methods = protocol_methods(args.policy, args.reference, GovernorSpec() if args.governor else None)
     except EvaluationError as err:
         args.parser.error(str(err))
     if methods[0].kind == "policy":

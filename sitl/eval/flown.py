@@ -25,6 +25,7 @@ import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+from companion.governor import GovernorSpec
 from sitl.eval.evaluate import EvalSettings, evaluate_method
 from sitl.eval.methods import Method, file_digest, resolve_method
 from sitl.eval.report import markdown_table, write_json
@@ -166,10 +167,13 @@ def run_flown(out: Path, cells: list[FlownCell], methods: list[Method], progress
     return {"results": results, "status": status}
 
 
-def protocol_methods(policy: str, reference: bool = True) -> list[Method]:
-    """The controller named ``policy`` and, unless it is ``straight`` or ``reference`` is off, ``straight``."""
+def protocol_methods(policy: str, reference: bool = True, governor: GovernorSpec | None = None) -> list[Method]:
+    """The controller named ``policy`` (with the speed ``governor`` after it, if given) and, unless
+    ``reference`` is off or the controller is the plain ``straight`` line itself, ``straight``."""
     method = resolve_method(policy)
+    if governor is not None:
+        method = method.with_governor(governor)
     methods = [method]
-    if reference and not (method.kind == "baseline" and method.label == "straight"):
+    if reference and method.label != "straight":
         methods.append(resolve_method("straight"))
     return methods

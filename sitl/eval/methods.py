@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from companion.governor import GovernorSpec, SpeedGovernor
 from companion.spec import CameraSpec
 from sitl.sim.env import Observation, SwarmEnv
 from sitl.sim.episodes import Actor, ActorFactory
@@ -23,6 +24,8 @@ DEFAULT_POLICY = Path("models/policy.pt")
 BASELINES = ("straight", "orca", "orca-fov")
 #: The ORCA references (sitl.eval.orca): all UAVs known, or only those in the camera's view.
 ORCA_BASELINES = ("orca", "orca-fov")
+#: Appended to a controller's label when the speed governor follows it.
+GOVERNED_SUFFIX = "+governor"
 
 
 class EvaluationError(ValueError):
@@ -39,11 +42,14 @@ class Method:
     camera: CameraSpec | None = None  # the policy's camera: the simulated camera must match it
     control_period_s: float | None = None
     provenance: dict = field(default_factory=dict)
+    governor: GovernorSpec | None = None  # companion.governor on the commands (label gains "+governor")
     _policy: object = field(default=None, repr=False)
 
     def info(self) -> dict:
         """What the JSON says about the controller."""
         out = {"label": self.label, "kind": self.kind}
+        if self.governor is not None:
+            out["governor"] = self.governor.to_dict()
         if self.path:
             out |= {"path": self.path, "sha256": file_digest(self.path),
                     "camera": self.camera.to_dict() if self.camera else None, "provenance": self.provenance}
@@ -55,15 +61,43 @@ class Method:
 
     def make_actor(self, env: SwarmEnv) -> Actor:
         """This controller's :data:`~sitl.sim.episodes.Actor` for every UAV of ``env`` (an :data:`ActorFactory`)."""
-        if self.kind == "baseline" and self.label == "straight":
+        actor = self._make_ungoverned_actor(env)
+        if self.governor is None:
+            return actor
+        return governed_actor(actor, SpeedGovernor(env.config.camera, self.governor), env)
+
+    def with_governor(self, spec: GovernorSpec) -> Method:
+        """The same controller with the speed governor after it (:mod:`companion.governor`)."""
+        return dataclasses.replace(self, label=self.label + GOVERNED_SUFFIX, governor=spec)
+
+    def _make_ungoverned_actor(self, env: SwarmEnv) -> Actor:
+        name = self.label.removesuffix(GOVERNED_SUFFIX)  # the controller the governor follows
+        if self.kind == "baseline" and name == "straight":
             from sitl.sim.baselines import straight_actor
 
             return straight_actor(env)
-        if self.label in ORCA_BASELINES and self.kind == "baseline":
+        if self.kind == "baseline" and name in ORCA_BASELINES:
             from sitl.eval.orca import orca_actor
 
-            return orca_actor(env, camera_limited=self.label == "orca-fov")
+            return orca_actor(env, camera_limited=name == "orca-fov")
         return policy_actor(self._policy)(env)
+
+
+def governed_actor(actor: Actor, governor: SpeedGovernor, env: SwarmEnv) -> Actor:
+    """``actor`` with ``governor`` applied to the acting UAVs' commands, on their newest depth frame,
+    as the companion applies it after the policy."""
+
+    turning = np.zeros(env.num_agents, dtype=np.float32)  # each UAV's turn in progress (a sticky governor's)
+
+    def act(obs: Observation) -> np.ndarray:
+        out = np.array(actor(obs), dtype=np.float32)  # a copy: the actor may reuse its array
+        rows = np.flatnonzero(env.acting)
+        if rows.size:
+            turning[rows[env.flight_steps[rows] == 0]] = 0.0  # a new flight starts without a turn
+            out[rows], _, _, turning[rows] = governor.apply(obs.depth[rows, -1], out[rows], turning[rows])
+        return out
+
+    return act
 
 
 def policy_actor(policy) -> ActorFactory:

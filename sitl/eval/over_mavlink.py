@@ -8,9 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
+from companion.governor import GovernorSpec
 from companion.spec import TaskSpec
 from sitl.eval.evaluate import EvalResult, EvalSettings
-from sitl.eval.methods import Method
+from sitl.eval.methods import EvaluationError, Method
 from sitl.sim.metrics import summarize
 
 def evaluate_beside_in_process(method: Method, settings: EvalSettings, in_process: EvalResult, out: Path,
@@ -30,13 +31,16 @@ def evaluate_beside_in_process(method: Method, settings: EvalSettings, in_proces
     samples = [sample_scenario(settings.num_uavs, settings.scenario, rng) for _ in range(settings.episodes)]
     sim_config = in_process.sim_config
     camera = sim_config.camera
+    if method.governor is not None and method.governor != GovernorSpec():
+        raise EvaluationError("over MAVLink the companions fly the governor with its default settings only")
     mav_settings = MavlinkSettings(
         policy_path=str(method.path), start=start, base_port=base_port, depth_port=depth_port,
         gcs_port=gcs_port, dynamics=settings.dynamics, camera_size=(camera.width, camera.height),
         hfov_deg=camera.hfov_deg, max_range_m=camera.max_range_m,
         time_limit_s=settings.max_episode_steps * sim_config.control_period_s,
         task=TaskSpec(collision_radius_m=sim_config.collision_radius_m,  # scored as the in-process run beside it
-                      arrival_radius_m=sim_config.reward.arrival_radius_m, max_episode_steps=settings.max_episode_steps))
+                      arrival_radius_m=sim_config.reward.arrival_radius_m, max_episode_steps=settings.max_episode_steps),
+        governor=method.governor is not None)
     evaluation = evaluate_over_mavlink(samples, mav_settings, out, progress=progress)
     label = f"{method.label} (MAVLink)"
     result = EvalResult(replace(method, label=label), settings, sim_config, evaluation.records,

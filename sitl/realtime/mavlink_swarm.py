@@ -73,6 +73,7 @@ class MavlinkSettings:
     time_limit_s: float = 40.0  # after the goals are sent
     ready_timeout_s: float = 120.0  # start-up, arming and takeoff
     companion_threads: int = 1  # torch threads per companion: N of them share the machine
+    governor: bool = False  # companion --governor (its default settings)
     task: TaskSpec = DEFAULT_TASK_SPEC  # collision and arrival radii the outcomes are scored with (the in-process run's)
 
     def __post_init__(self) -> None:
@@ -283,6 +284,8 @@ def fly_episode(sample: ScenarioSample, episode: int, settings: MavlinkSettings,
                     "--log", str(folder / f"{name}.jsonl"), "--heartbeat-timeout", "60", "--arm"]
             if settings.start == "ground":
                 args += ["--takeoff", f"{-sample.start_ned[i, 2]:.2f}"]
+            if settings.governor:
+                args.append("--governor")
             groups.start(name, args, folder / f"{name}.out")
         status(f"episode {episode}: {n} companions starting")
         _wait_companions_ready(groups, gcs, folder, names, started + settings.ready_timeout_s, status, episode)

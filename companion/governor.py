@@ -1,0 +1,136 @@
+"""A speed governor on the policy's forward command: stop before what the camera shows straight ahead.
+
+PX4's collision prevention (``CP_DIST``, fed by the companion's OBSTACLE_DISTANCE) acts only in
+Position mode, and the companion flies in Offboard, so nothing but the policy slows the vehicle
+before an obstacle. This governor is the companion-side equivalent, applied after the policy and
+before the setpoint is sent, with the policy's own depth frame (so the simulator's evaluation and
+the companion run the same code on the same input):
+
+* **Cap.** The nearest depth ``d`` among the pixels of the newest frame whose point lies inside the
+  flight corridor (``|x| <= corridor_half_width_m`` and ``|y| <= corridor_half_height_m`` around
+  the optical axis: what a straight flight would touch) bounds the forward speed to the one from
+  which the vehicle can still stop ``stop_distance_m`` short of it, braking at ``brake_acc_m_s2``
+  after ``delay_s`` of lag: ``v = -a t + sqrt((a t)^2 + 2 a (d - stop))``.
+* **Turn.** Where the cap takes more than half the policy's forward command and the policy is not
+  turning decisively itself (``|yaw rate| < turn_when_policy_below_rad_s``), the governor turns at
+  ``turn_rate_rad_s`` towards the image half with more free space in the corridor's height band (right
+  on a tie: two UAVs meeting head-on both turn right). Without the turn a UAV in front of a pole waits
+  for a yaw command the policy, trained without a governor, does not give.
+* **Sticky turn** (``release_margin_m`` finite, the default). A turn, once started, keeps its direction and overrides the
+  policy's yaw until the corridor is clear to ``stop_distance_m + release_margin_m``: otherwise the policy
+  yaws back towards its goal behind the obstacle as soon as the corridor clears by a pixel, the
+  obstacle is in the way again, and the vehicle dithers in front of it. The turn state is per vehicle
+  (:meth:`SpeedGovernor.apply`'s ``turning`` in and out; 0 at the start of a flight).
+
+It only lowers the forward speed and sets the yaw rate; climb is the policy's. "No data" pixels
+read as the camera's range (the policy's convention), i.e. free. Measured in docs/results.md
+("The speed governor"): opt-in, since among poles it trades collisions for stalls.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from companion.spec import CameraSpec
+
+
+@dataclass(frozen=True)
+class GovernorSpec:
+    """The governor's settings (the defaults are the measured ones, docs/results.md)."""
+
+    corridor_half_width_m: float = 0.35  # the collision radius R = 0.3 m plus 5 cm
+    corridor_half_height_m: float = 0.35
+    stop_distance_m: float = 1.0  # depth (m) at which the forward speed reaches zero
+    brake_acc_m_s2: float = 2.0  # deceleration assumed for the stopping distance
+    delay_s: float = 0.35  # control period plus velocity-loop lag before braking starts
+    turn_rate_rad_s: float = 0.5  # yaw rate of the turn away (the action limit)
+    turn_when_capped_below: float = 0.5  # turn when the cap leaves less than this share of the command
+    turn_when_policy_below_rad_s: float = 0.3  # ... and the policy's own |yaw rate| is below this
+    free_space_clip_m: float = 5.0  # free space per column counted up to this depth when choosing a side
+    release_margin_m: float = 1.0  # sticky turn: held until the corridor is clear to stop + this (inf: not sticky)
+
+    def __post_init__(self) -> None:
+        for name, value in asdict(self).items():
+            if math.isnan(value) or value < 0.0 or (math.isinf(value) and name != "release_margin_m"):
+                raise ValueError(f"governor {name} must be a finite number >= 0, got {value}")
+        if self.brake_acc_m_s2 <= 0.0:
+            raise ValueError(f"governor brake_acc_m_s2 must be > 0, got {self.brake_acc_m_s2}")
+
+    @property
+    def sticky(self) -> bool:
+        return math.isfinite(self.release_margin_m)
+
+    def to_dict(self) -> dict:
+        return {k: (None if isinstance(v, float) and math.isinf(v) else v) for k, v in asdict(self).items()}
+
+
+class SpeedGovernor:
+    """Applies a :class:`GovernorSpec` to commands of UAVs carrying ``camera`` (the policy's camera).
+
+    Args:
+        camera: the policy's camera: its field of view and resolution place each pixel's point.
+        spec: the settings.
+    """
+
+    def __init__(self, camera: CameraSpec, spec: GovernorSpec = GovernorSpec()) -> None:
+        self.camera = camera
+        self.spec = spec
+        edges_u = (2.0 * np.arange(camera.width + 1) / camera.width - 1.0) * camera.tan_half_hfov
+        self.tan_u = (0.5 * (edges_u[:-1] + edges_u[1:])).astype(np.float32)  # x right = z * tan_u
+        self.tan_v = (((2.0 * np.arange(camera.height) + 1.0) / camera.height - 1.0)
+                      * camera.tan_half_vfov).astype(np.float32)  # y down = z * tan_v
+
+    def forward_limit(self, depth_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For frames [k, H, W] (planar metres): the nearest depth in the corridor (m: the camera's range when
+        nothing is nearer; inf only if no pixel's point lies in it) and the speed cap (m/s)."""
+        s = self.spec
+        z = np.asarray(depth_m, dtype=np.float32)
+        inside = (np.abs(z * self.tan_u) <= s.corridor_half_width_m) & \
+                 (np.abs(z * self.tan_v[:, None]) <= s.corridor_half_height_m)
+        nearest = np.where(inside, z, np.inf).min(axis=(1, 2))
+        a, t = s.brake_acc_m_s2, s.delay_s
+        room = np.maximum(nearest - s.stop_distance_m, 0.0)
+        cap = np.maximum(-a * t + np.sqrt((a * t) ** 2 + 2.0 * a * room), 0.0)
+        return nearest, cap
+
+    def turn_direction(self, depth_m: np.ndarray) -> np.ndarray:
+        """+1 (right) or -1 (left) per frame [k, H, W]: the image half with more free space in the corridor's band."""
+        s = self.spec
+        z = np.asarray(depth_m, dtype=np.float32)
+        band = np.abs(z * self.tan_v[:, None]) <= s.corridor_half_height_m
+        free = np.minimum(np.where(band, z, np.inf).min(axis=1), s.free_space_clip_m)  # [k, W]
+        half = free.shape[1] // 2
+        right_minus_left = free[:, half:].mean(axis=1) - free[:, :half].mean(axis=1)
+        return np.where(right_minus_left < 0.0, -1.0, 1.0)
+
+    def apply(self, depth_m: np.ndarray, commands: np.ndarray, turning: np.ndarray | None = None
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Govern ``commands`` [k, 3] (forward m/s, down m/s, yaw rate rad/s) with each UAV's newest frame [k, H, W].
+
+        ``turning`` [k] is each UAV's turn in progress (+1 right, -1 left, 0 none; ``None``: none), as
+        the previous call returned it; only a sticky governor keeps one. Returns the governed commands
+        (a copy), whether the cap lowered each forward speed, the nearest depth in the corridor (m, as
+        :meth:`forward_limit`) and the turns in progress after this step.
+        """
+        s = self.spec
+        out = np.array(commands, dtype=np.float32, copy=True)
+        depth_m = np.asarray(depth_m)
+        turning = np.zeros(len(out), dtype=np.float32) if turning is None else np.array(turning, dtype=np.float32)
+        nearest, cap = self.forward_limit(depth_m)
+        forward = out[:, 0].copy()
+        capped = cap < forward
+        start = (turning == 0) & (cap < s.turn_when_capped_below * forward) & \
+            (np.abs(out[:, 2]) < s.turn_when_policy_below_rad_s)
+        if s.sticky:
+            turning[nearest >= s.stop_distance_m + s.release_margin_m] = 0.0  # clear ahead: the policy steers again
+        if np.any(start):
+            turning[start] = self.turn_direction(depth_m[start])
+        steer = turning != 0
+        out[steer, 2] = s.turn_rate_rad_s * turning[steer]
+        out[:, 0] = np.minimum(forward, cap)
+        if not s.sticky:
+            turning[:] = 0.0  # each step decides afresh
+        return out, capped, nearest, turning

@@ -1,0 +1,144 @@
+"""The speed governor (companion.governor): its cap, its turn, and the simulator flying it as the companion does."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from companion.governor import GovernorSpec, SpeedGovernor
+from companion.spec import CAMERA_PRESETS
+from sitl.eval.evaluate import EvalSettings, evaluate_method
+from sitl.eval.methods import governed_actor, resolve_method
+from sitl.sim.baselines import straight_actor
+from sitl.sim.config import ScenarioConfig, SimConfig
+from sitl.sim.env import SwarmEnv
+
+CAMERA = CAMERA_PRESETS["realsense_d435"]
+FAR = CAMERA.max_range_m
+
+
+def _frames(fill: float = FAR, k: int = 1) -> np.ndarray:
+    return np.full((k, CAMERA.height, CAMERA.width), fill, dtype=np.float32)
+
+
+def test_a_wall_ahead_caps_the_forward_speed_to_a_stop_before_it():
+    gov = SpeedGovernor(CAMERA)
+    spec = gov.spec
+    walls = np.stack([_frames(d)[0] for d in (FAR, 5.0, 2.0, 1.2, 0.8)])
+    nearest, cap = gov.forward_limit(walls)
+    assert nearest.tolist() == pytest.approx([FAR, 5.0, 2.0, 1.2, 0.8])
+    a, t = spec.brake_acc_m_s2, spec.delay_s
+    for d, v in zip(nearest, cap):
+        room = max(d - spec.stop_distance_m, 0.0)
+        assert v == pytest.approx(-a * t + math.sqrt((a * t) ** 2 + 2 * a * room), rel=1e-5)
+        if room > 0:  # from v the vehicle stops within the room: lag distance plus braking distance
+            assert v * t + v * v / (2 * a) == pytest.approx(room, rel=1e-4)
+    assert cap[0] > 2.0 and cap[-1] == 0.0  # open sky: no cap within the action range; inside the stop distance: stop
+
+    commands = np.array([[2.0, -0.3, 0.1]] * 5, dtype=np.float32)
+    out, capped, _, _ = gov.apply(walls, commands)
+    assert out[:, 0].tolist() == pytest.approx(np.minimum(2.0, cap).tolist())
+    assert capped.tolist() == [False, False, True, True, True]  # from 5 m the cap (3.4 m/s) is above 2 m/s
+    assert np.all(out[:, 1] == -0.3)  # climb is the policy's
+    assert np.all(commands[:, 0] == 2.0)  # the input is not modified
+
+
+def test_only_what_lies_in_the_corridor_counts():
+    gov = SpeedGovernor(CAMERA)
+    # A pole 2 m ahead seen in one column: inside the corridor at the image centre, outside it at the edge.
+    x_offset_m = 2.0 * gov.tan_u  # lateral offset of each column's point at 2 m
+    centre, edge = int(np.argmin(np.abs(x_offset_m))), 0
+    assert abs(x_offset_m[centre]) <= gov.spec.corridor_half_width_m < abs(x_offset_m[edge])
+    frames = _frames(k=2)
+    frames[0, :, centre] = 2.0
+    frames[1, :, edge] = 2.0
+    nearest, cap = gov.forward_limit(frames)
+    assert nearest[0] == pytest.approx(2.0) and cap[0] < 2.0
+    assert nearest[1] == FAR and cap[1] > 2.0  # the corridor shows open sky (no data reads as the range)
+    # The ground 1.5 m below fills the lower rows: outside the corridor's height, not an obstacle.
+    ground = _frames()
+    rows = np.flatnonzero(gov.tan_v > 0)
+    ground[0, rows, :] = (1.5 / gov.tan_v[rows])[:, None]
+    assert gov.forward_limit(ground)[0][0] == FAR
+
+
+def test_a_stopped_uav_turns_towards_the_freer_side_unless_the_policy_turns():
+    gov = SpeedGovernor(CAMERA)
+    frames = _frames(1.1, k=4)  # a wall 1.1 m ahead everywhere: stopped
+    half = CAMERA.width // 2
+    frames[0, :, :half] = 0.9  # nearer on the left: turn right
+    frames[1, :, half:] = 0.9  # nearer on the right: turn left
+    commands = np.array([[1.5, 0.0, 0.0], [1.5, 0.0, 0.0], [1.5, 0.0, 0.0], [1.5, 0.0, -0.4]], dtype=np.float32)
+    out, capped, _, _ = gov.apply(frames, commands)
+    assert capped.all() and np.all(out[:, 0] < 0.5 * 1.5)
+    rate = gov.spec.turn_rate_rad_s
+    assert out[:, 2].tolist() == pytest.approx([rate, -rate, rate, -0.4])  # a tie turns right; a turning policy keeps its turn
+    # A sticky turn holds its direction over the policy's yaw until the corridor is clear.
+    sticky = SpeedGovernor(CAMERA, GovernorSpec(release_margin_m=1.0))
+    turning = np.array([-1.0], dtype=np.float32)
+    for depth, expected in ((1.1, -1.0), (1.9, -1.0), (2.0, 0.0)):
+        out, _, _, turning = sticky.apply(_frames(depth), np.array([[1.5, 0.0, 0.4]], dtype=np.float32), turning)
+        assert turning[0] == expected and out[0, 2] == pytest.approx(0.4 if expected == 0 else -rate)
+    # A cap that leaves more than half the command does not turn.
+    out, capped, _, _ = gov.apply(_frames(2.0), np.array([[1.5, 0.0, 0.0]], dtype=np.float32))
+    assert capped[0] and out[0, 2] == 0.0
+
+
+@pytest.mark.parametrize("field, value", [("stop_distance_m", -1.0), ("brake_acc_m_s2", 0.0),
+                                          ("corridor_half_width_m", math.nan)])
+def test_bad_settings_are_refused(field, value):
+    with pytest.raises(ValueError, match=field):
+        GovernorSpec(**{field: value})
+
+
+def _pole_run(spec: GovernorSpec | None) -> tuple[str, float]:
+    """One UAV flying straight at its goal 10 m north through a 0.2 m pole: its outcome and closest approach."""
+    cfg = SimConfig(num_uavs=1, camera=CAMERA, max_episode_steps=300,
+                    scenario=ScenarioConfig(name="random", density=0.01, min_goal_distance_m=0.0))
+    env = SwarmEnv(cfg, seed=0, cylinders=np.array([[[0.0, 0.0, 0.2, -30.0, 0.0]]]))
+    env.reset()
+    env.dynamics.reset(np.array([0]), np.array([[-5.0, 0.0, -8.0]]), np.array([0.0]))
+    env.goal_ned[0] = [5.0, 0.0, -8.0]
+    act = straight_actor(env)
+    if spec is not None:
+        act = governed_actor(act, SpeedGovernor(CAMERA, spec), env)
+    obs, *_ = env.step(np.zeros((1, 3), dtype=np.float32))  # an observation from the placed start
+    closest = math.inf
+    for _ in range(400):
+        obs, _, term, _, _ = env.step(act(obs))
+        closest = min(closest, float(np.hypot(*env.dynamics.pos_ned[0, :2])))
+        if term[0]:
+            break
+    return env.finish()[0].outcome, closest
+
+
+def test_the_governor_keeps_a_straight_flight_off_a_pole_and_a_sticky_turn_takes_it_past():
+    assert _pole_run(None)[0] == "collision_obstacle"
+    touching = 0.2 + 0.3  # the pole's radius plus the UAV's R
+    # Turning afresh each step it stops in front of the pole and dithers: the straight line yaws back
+    # at its goal as soon as the corridor clears, and the pole is in the way again.
+    outcome, closest = _pole_run(GovernorSpec(release_margin_m=math.inf))
+    assert outcome == "timeout" and closest > touching
+    # Holding the turn until the corridor is clear, it slides round the pole and arrives.
+    outcome, closest = _pole_run(GovernorSpec(release_margin_m=1.0))
+    assert outcome == "arrived" and closest > touching
+
+
+def test_evaluation_flies_a_governed_controller_under_its_own_label():
+    method = resolve_method("straight").with_governor(GovernorSpec(release_margin_m=0.5))
+    assert method.label == "straight+governor" and method.info()["governor"]["release_margin_m"] == 0.5
+    assert GovernorSpec(release_margin_m=math.inf).to_dict()["release_margin_m"] is None  # JSON has no infinity: null
+    settings = EvalSettings(scenario=ScenarioConfig(name="circle", circle_radius_m=6.0), num_uavs=2, episodes=4,
+                            camera="realsense_d435", max_episode_steps=150)
+
+    def rates(m):
+        s = evaluate_method(m, settings, progress=False).summary
+        return s["success_rate"], s["collision_uav_rate"], s["timeout_rate"]
+
+    # Two UAVs meeting head-on: the straight line collides; governed afresh each step, both stop and
+    # dither nose to nose; with the sticky turn both turn right, pass and arrive.
+    assert rates(resolve_method("straight")) == (0.0, 1.0, 0.0)
+    assert rates(resolve_method("straight").with_governor(GovernorSpec(release_margin_m=math.inf))) == (0.0, 0.0, 1.0)
+    assert rates(method) == (1.0, 0.0, 0.0)
