@@ -24,8 +24,8 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
-from companion.governor import GovernorSpec
 from companion.flightlog import DEFAULT_LOG_KEEP, DEFAULT_LOG_MAX_MB
+from companion.governor import GovernorSpec
 from companion.recording import DEFAULT_RECORD_KEEP, DEFAULT_RECORD_MAX_MB
 from companion.spec import (
     DEFAULT_ACTION_SPEC,
@@ -238,8 +238,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="speed governor after the policy: cap the forward speed so the vehicle stops "
                              f"{GovernorSpec().stop_distance_m:g} m before the nearest depth point in a "
                              f"+-{GovernorSpec().corridor_half_width_m:g} m corridor ahead, and turn towards the freer "
-                             "side when that stops it (PX4's collision prevention does nothing in Offboard; default "
-                             "off: among poles it trades collisions for stalls, docs/companion.md)")
+                             "side until the way is clear (PX4's collision prevention does nothing in Offboard; default "
+                             "off: it costs dense converging traffic, docs/companion.md)")
     output = parser.add_argument_group("output")
     output.add_argument("--log", type=_output_file, default="-", metavar="PATH",
                         help="JSON-lines log of every control step and event (default '-': stdout)")

@@ -16,15 +16,18 @@ the companion run the same code on the same input):
   ``turn_rate_rad_s`` towards the image half with more free space in the corridor's height band (right
   on a tie: two UAVs meeting head-on both turn right). Without the turn a UAV in front of a pole waits
   for a yaw command the policy, trained without a governor, does not give.
-* **Sticky turn** (``release_margin_m`` finite, the default). A turn, once started, keeps its direction and overrides the
-  policy's yaw until the corridor is clear to ``stop_distance_m + release_margin_m``: otherwise the policy
+* **Sticky turn** (``release_margin_m`` finite, the default). A turn, once started, keeps its
+  direction and overrides the policy's yaw until the corridor is clear to
+  ``stop_distance_m + release_margin_m``: otherwise the policy
   yaws back towards its goal behind the obstacle as soon as the corridor clears by a pixel, the
   obstacle is in the way again, and the vehicle dithers in front of it. The turn state is per vehicle
   (:meth:`SpeedGovernor.apply`'s ``turning`` in and out; 0 at the start of a flight).
 
 It only lowers the forward speed and sets the yaw rate; climb is the policy's. "No data" pixels
-read as the camera's range (the policy's convention), i.e. free. Measured in docs/results.md
-("The speed governor"): opt-in, since among poles it trades collisions for stalls.
+read as the camera's range (the policy's convention), i.e. free. It assumes the obstacle stands
+still (two vehicles closing head-on need twice the room). Measured in docs/results.md ("The speed
+governor"): it lifts random and obstacle scenes and costs dense converging traffic (a circle of 14
+UAVs), so it is opt-in (``companion --governor``).
 """
 
 from __future__ import annotations

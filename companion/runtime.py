@@ -79,9 +79,9 @@ from companion.flight_modes import (
     PX4_MODE_BY_NAME,
     AutopilotKind,
 )
+from companion.governor import GovernorSpec, SpeedGovernor
 from companion.inference import InferenceWorker
 from companion.observation import DepthFrameStack, build_state
-from companion.governor import GovernorSpec, SpeedGovernor
 from companion.obstacle_distance import ObstacleDistancePublisher
 from companion.policy import LoadedPolicy, torchscript_error_line
 from companion.recording import FlightRecorder
