@@ -81,10 +81,8 @@ class SpeedGovernor:
     def __init__(self, camera: CameraSpec, spec: GovernorSpec = GovernorSpec()) -> None:
         self.camera = camera
         self.spec = spec
-        edges_u = (2.0 * np.arange(camera.width + 1) / camera.width - 1.0) * camera.tan_half_hfov
-        self.tan_u = (0.5 * (edges_u[:-1] + edges_u[1:])).astype(np.float32)  # x right = z * tan_u
-        self.tan_v = (((2.0 * np.arange(camera.height) + 1.0) / camera.height - 1.0)
-                      * camera.tan_half_vfov).astype(np.float32)  # y down = z * tan_v
+        tan_u, tan_v = camera.pixel_tangents()  # x right = z * tan_u, y down = z * tan_v
+        self.tan_u, self.tan_v = tan_u.astype(np.float32), tan_v.astype(np.float32)
 
     def forward_limit(self, depth_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For frames [k, H, W] (planar metres): the nearest depth in the corridor (m: the camera's range when

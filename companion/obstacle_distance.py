@@ -73,11 +73,9 @@ class ObstacleBins:
     def __init__(self, camera: CameraSpec, vertical_band_m: float = VERTICAL_BAND_M) -> None:
         self.camera = camera
         self.vertical_band_m = vertical_band_m
-        width, height = camera.width, camera.height
-        # Pixel-centre tangents: x right = z * tan_u, y down = z * tan_v (square pixels, centred axis).
-        edges_u = (2.0 * np.arange(width + 1) / width - 1.0) * camera.tan_half_hfov
-        self.tan_u = 0.5 * (edges_u[:-1] + edges_u[1:])
-        self.tan_v = ((2.0 * np.arange(height) + 1.0) / height - 1.0) * camera.tan_half_vfov
+        width = camera.width
+        self.tan_u, self.tan_v = camera.pixel_tangents()  # x right = z * tan_u, y down = z * tan_v
+        edges_u = (2.0 * np.arange(width + 1) / width - 1.0) * camera.tan_half_hfov  # column edges, for the bins
         self.horizontal_factor = np.sqrt(1.0 + self.tan_u**2)  # planar depth -> horizontal range
         self.fov_bins = math.ceil(camera.hfov_deg / BIN_WIDTH_DEG - 1e-9)
         self.angle_offset_deg = -0.5 * self.fov_bins * BIN_WIDTH_DEG + 0.5 * BIN_WIDTH_DEG

@@ -193,6 +193,13 @@ class CameraSpec:
             return self.tan_half_hfov * self.height / self.width
         return math.tan(math.radians(self.vfov_deg) / 2.0)
 
+    def pixel_tangents(self) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel-centre tangents ``(tan_u [W], tan_v [H])``: a point at planar depth z in column c and row r
+        lies z * tan_u[c] right of and z * tan_v[r] below the optical axis (centred axis, rows top down)."""
+        edges_u = (2.0 * np.arange(self.width + 1) / self.width - 1.0) * self.tan_half_hfov
+        tan_v = ((2.0 * np.arange(self.height) + 1.0) / self.height - 1.0) * self.tan_half_vfov
+        return 0.5 * (edges_u[:-1] + edges_u[1:]), tan_v
+
     @property
     def vertical_fov_deg(self) -> float:
         """The vertical field of view in degrees, given or derived from square pixels."""

@@ -142,3 +142,14 @@ def test_evaluation_flies_a_governed_controller_under_its_own_label():
     assert rates(resolve_method("straight")) == (0.0, 1.0, 0.0)
     assert rates(resolve_method("straight").with_governor(GovernorSpec(release_margin_m=math.inf))) == (0.0, 0.0, 1.0)
     assert rates(method) == (1.0, 0.0, 0.0)
+
+
+def test_a_stored_flown_cell_is_reused_only_for_the_same_governor_settings(tmp_path):
+    from sitl.eval.flown import flown_cells, run_flown_cell
+
+    cell = next(c for c in flown_cells(episodes=1, batch=1, jsbsim=False) if c.name == "random-small")
+    first = resolve_method("straight").with_governor(GovernorSpec())
+    other = resolve_method("straight").with_governor(GovernorSpec(stop_distance_m=0.5))
+    assert run_flown_cell(cell, first, tmp_path, progress=False)[1] == "computed"
+    assert run_flown_cell(cell, first, tmp_path, progress=False)[1] == "stored"
+    assert run_flown_cell(cell, other, tmp_path, progress=False)[1] == "computed"  # same label, other settings
