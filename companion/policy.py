@@ -41,6 +41,7 @@ and runs with onnxruntime (:mod:`companion.onnx_policy`).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import re
@@ -52,6 +53,7 @@ from pathlib import Path
 
 import numpy as np
 
+from companion.governor import GovernorSpec
 from companion.spec import (
     CONTROL_PERIOD_MAX_S,
     CONTROL_PERIOD_MIN_S,
@@ -87,8 +89,9 @@ class PolicyFileError(ValueError):
 
 
 def build_metadata(camera: CameraSpec, action: ActionSpec, control_period_s: float, provenance: dict,
-                   task: TaskSpec = DEFAULT_TASK_SPEC) -> dict:
-    """The ``policy.json`` content for a policy trained with ``camera``, ``action`` and ``task``."""
+                   task: TaskSpec = DEFAULT_TASK_SPEC, governor: GovernorSpec | None = None) -> dict:
+    """The ``policy.json`` content for a policy trained with ``camera``, ``action`` and ``task`` (and the
+    speed ``governor`` after it, if any)."""
     return {
         "format_version": FORMAT_VERSION,
         "depth": {
@@ -107,6 +110,7 @@ def build_metadata(camera: CameraSpec, action: ActionSpec, control_period_s: flo
         "state_names": list(STATE_NAMES),
         "action": {"names": list(action.names), "low": list(action.low), "high": list(action.high)},
         "task": task.to_dict(),
+        **({"governor": governor.to_dict()} if governor is not None else {}),
         "provenance": provenance,
     }
 
@@ -160,6 +164,8 @@ class LoadedPolicy:
     format_version: int = FORMAT_VERSION
     #: How an older file was read (empty for a current one): the companion prints these.
     notes: tuple[str, ...] = ()
+    #: The speed governor the policy was trained with (policy.json's optional ``governor``): it flies with it.
+    governor: GovernorSpec | None = None
 
     def act(self, depth_m: np.ndarray, state: np.ndarray) -> np.ndarray:
         """Deterministic actions [B, 3] (float32) for a batch of observations."""
@@ -333,6 +339,27 @@ def _check_task(task: object, path: str) -> TaskSpec:
     return TaskSpec(collision_radius_m=radius, arrival_radius_m=arrival, max_episode_steps=steps)
 
 
+def _check_governor(governor: object, path: str) -> GovernorSpec | None:
+    """The speed governor a policy was trained with (absent or null: none), every setting named."""
+    if governor is None:
+        return None
+    _require(isinstance(governor, dict), path, f"governor must be a JSON object, file says {governor!r:.40}")
+    names = [f.name for f in dataclasses.fields(GovernorSpec)]
+    unknown = sorted(set(governor) - set(names))
+    _require(not unknown, path, f"governor has unknown settings {unknown} (this companion knows {names})")
+    values = {}
+    for name in names:
+        value = governor.get(name)
+        if name == "release_margin_m" and value is None:  # JSON has no inf: null is "never sticky"
+            values[name] = math.inf
+            continue
+        values[name] = _finite_number(value, path, f"governor {name}")
+    try:
+        return GovernorSpec(**values)
+    except ValueError as err:
+        raise PolicyFileError(f"{path}: {err}") from None
+
+
 def load_policy(path: str | Path, *, check_forward: bool = True,
                 providers: Sequence[str] | None = None) -> LoadedPolicy:
     """Load and validate a policy file; raise :class:`PolicyFileError` with the reason if invalid.
@@ -375,7 +402,8 @@ def load_policy(path: str | Path, *, check_forward: bool = True,
     module.eval()
     version = int(meta["format_version"])
     notes = version1_notes(meta, camera) if version == 1 else ()
-    policy = LoadedPolicy(module, meta, camera, action, period_s, path, task, version, notes)
+    governor = _check_governor(meta.get("governor"), path)
+    policy = LoadedPolicy(module, meta, camera, action, period_s, path, task, version, notes, governor)
     if check_forward:
         blank_depth = np.full((1, camera.frames, camera.height, camera.width), camera.max_range_m, np.float32)
         blank_state = np.zeros((1, len(STATE_NAMES)), np.float32)

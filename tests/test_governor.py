@@ -10,10 +10,11 @@ import pytest
 from companion.governor import GovernorSpec, SpeedGovernor
 from companion.spec import CAMERA_PRESETS
 from sitl.eval.evaluate import EvalSettings, evaluate_method
-from sitl.eval.methods import governed_actor, resolve_method
+from sitl.eval.methods import resolve_method
 from sitl.sim.baselines import straight_actor
 from sitl.sim.config import ScenarioConfig, SimConfig
 from sitl.sim.env import SwarmEnv
+from sitl.sim.episodes import governed_actor
 
 CAMERA = CAMERA_PRESETS["realsense_d435"]
 FAR = CAMERA.max_range_m
@@ -103,7 +104,7 @@ def _pole_run(spec: GovernorSpec | None) -> tuple[str, float]:
     env.goal_ned[0] = [5.0, 0.0, -8.0]
     act = straight_actor(env)
     if spec is not None:
-        act = governed_actor(act, SpeedGovernor(CAMERA, spec), env)
+        act = governed_actor(act, spec, env)
     obs, *_ = env.step(np.zeros((1, 3), dtype=np.float32))  # an observation from the placed start
     closest = math.inf
     for _ in range(400):

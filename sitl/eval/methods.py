@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.governor import GovernorSpec, SpeedGovernor
+from companion.governor import GovernorSpec
 from companion.spec import CameraSpec
 from sitl.sim.env import Observation, SwarmEnv
-from sitl.sim.episodes import Actor, ActorFactory
+from sitl.sim.episodes import Actor, ActorFactory, governed_actor
 
 DEFAULT_POLICY = Path("models/policy.pt")
 
@@ -64,11 +64,13 @@ class Method:
         actor = self._make_ungoverned_actor(env)
         if self.governor is None:
             return actor
-        return governed_actor(actor, SpeedGovernor(env.config.camera, self.governor), env)
+        return governed_actor(actor, self.governor, env)
 
     def with_governor(self, spec: GovernorSpec) -> Method:
-        """The same controller with the speed governor after it (:mod:`companion.governor`)."""
-        return dataclasses.replace(self, label=self.label + GOVERNED_SUFFIX, governor=spec)
+        """The same controller with the speed governor after it (:mod:`companion.governor`); one that
+        already has a governor (a policy trained with it) keeps its label and flies ``spec`` instead."""
+        label = self.label if self.governor is not None else self.label + GOVERNED_SUFFIX
+        return dataclasses.replace(self, label=label, governor=spec)
 
     def _make_ungoverned_actor(self, env: SwarmEnv) -> Actor:
         name = self.label.removesuffix(GOVERNED_SUFFIX)  # the controller the governor follows
@@ -81,23 +83,6 @@ class Method:
 
             return orca_actor(env, camera_limited=name == "orca-fov")
         return policy_actor(self._policy)(env)
-
-
-def governed_actor(actor: Actor, governor: SpeedGovernor, env: SwarmEnv) -> Actor:
-    """``actor`` with ``governor`` applied to the acting UAVs' commands, on their newest depth frame,
-    as the companion applies it after the policy."""
-
-    turning = np.zeros(env.num_agents, dtype=np.float32)  # each UAV's turn in progress (a sticky governor's)
-
-    def act(obs: Observation) -> np.ndarray:
-        out = np.array(actor(obs), dtype=np.float32)  # a copy: the actor may reuse its array
-        rows = np.flatnonzero(env.acting)
-        if rows.size:
-            turning[rows[env.flight_steps[rows] == 0]] = 0.0  # a new flight starts without a turn
-            out[rows], _, _, turning[rows] = governor.apply(obs.depth[rows, -1], out[rows], turning[rows])
-        return out
-
-    return act
 
 
 def policy_actor(policy) -> ActorFactory:
@@ -181,5 +166,7 @@ def resolve_method(spec: str | Path) -> Method:
         raise EvaluationError(f"cannot use {path} as a policy: {err}") from None
     provenance = policy.metadata.get("provenance", {}) or {}
     label = str(provenance.get("method") or path.stem)
-    return Method(label=label, kind="policy", path=str(path), camera=policy.camera,
-                  control_period_s=policy.control_period_s, provenance=provenance, _policy=policy)
+    method = Method(label=label, kind="policy", path=str(path), camera=policy.camera,
+                    control_period_s=policy.control_period_s, provenance=provenance, _policy=policy)
+    # A policy trained with the speed governor flies with it, as the companion flies it.
+    return method.with_governor(policy.governor) if policy.governor is not None else method

@@ -74,7 +74,8 @@ def average_stage(stage_dir: Path, out: Path, updates: list[int] | None = None) 
     provenance["averaged_snapshots"] = {"stage": str(stage_dir), "updates": chosen,
                                         "replaces_selected_updates": _selected_updates(stage_dir)}
     out.parent.mkdir(parents=True, exist_ok=True)
-    export_policy(agent, out, selected.control_period_s, provenance, selected.task)
+    export_policy(agent, out, selected.control_period_s, provenance, selected.task,
+                  governor=selected.governor)
     return chosen
 
 

@@ -22,6 +22,7 @@ import torch
 from torch import nn
 
 from companion.checked_policy import unwrap_checked
+from companion.governor import GovernorSpec
 from companion.onnx_policy import INPUT_DEPTH, INPUT_STATE, METADATA_KEY, OUTPUT_ACTION
 from companion.policy import PolicyFileError, build_metadata, load_policy, save_policy
 from companion.spec import DEFAULT_TASK_SPEC, STATE_DIM, TaskSpec
@@ -63,8 +64,9 @@ def git_commit() -> str:
 
 
 def export_policy(agent, path: str | Path, control_period_s: float, provenance: dict,
-                  task: TaskSpec = DEFAULT_TASK_SPEC, onnx: bool = True) -> None:
-    """Write ``path`` as a TorchScript policy with ``policy.json`` metadata (``task``: what it was trained for).
+                  task: TaskSpec = DEFAULT_TASK_SPEC, onnx: bool = True, governor: GovernorSpec | None = None) -> None:
+    """Write ``path`` as a TorchScript policy with ``policy.json`` metadata (``task``: what it was trained for;
+    ``governor``: the speed governor it was trained with, which then flies with it).
 
     With ``onnx`` the same policy is also written beside it as ``<stem>.onnx`` (:func:`export_onnx`);
     without the ``onnx`` package that step is skipped with a note on stderr (a finished training run
@@ -72,7 +74,7 @@ def export_policy(agent, path: str | Path, control_period_s: float, provenance: 
     """
     module = ExportedPolicy(agent).eval()
     metadata = build_metadata(agent.camera, agent.action_spec, control_period_s,
-                              {"git_commit": git_commit(), **provenance}, task)
+                              {"git_commit": git_commit(), **provenance}, task, governor)
     save_policy(module, metadata, path)
     if onnx:
         try:

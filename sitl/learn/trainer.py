@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from companion.governor import GovernorSpec
 from companion.spec import DEFAULT_ACTION_SPEC, STATE_DIM, TaskSpec
 from sitl.learn.agent import AgentConfig, SacAeAgent
 from sitl.learn.buffer import FrameReplayBuffer
@@ -32,7 +33,7 @@ from sitl.learn.privileged import PRIVILEGED_NEIGHBOURS, env_privileged_features
 from sitl.learn.progress import Progress
 from sitl.sim.config import RewardConfig, SimConfig
 from sitl.sim.env import SwarmEnv
-from sitl.sim.episodes import ActorFactory, depth_state_actor, run_episodes
+from sitl.sim.episodes import ActorFactory, SwarmGovernor, depth_state_actor, governed_actor, run_episodes
 from sitl.sim.metrics import summarize
 from sitl.sim.scenarios import EVAL_SEED_OFFSET, VALIDATION_SEED_OFFSET
 
@@ -52,9 +53,17 @@ def evaluate_scenario(make_actor: ActorFactory, cfg: TrainConfig, scenario_name:
     return summarize(run_episodes(make_actor, sim_config, seed, episodes))
 
 
-def agent_actor(agent: SacAeAgent) -> ActorFactory:
-    """The factory of a training agent's deterministic actor."""
-    return depth_state_actor(lambda depth, state: agent.act(depth, state, explore=False))
+def agent_actor(agent: SacAeAgent, governor: GovernorSpec | None = None) -> ActorFactory:
+    """The factory of a training agent's deterministic actor (with the speed ``governor`` after it, if given)."""
+    plain = depth_state_actor(lambda depth, state: agent.act(depth, state, explore=False))
+    if governor is None:
+        return plain
+    return lambda env: governed_actor(plain(env), governor, env)
+
+
+def train_governor(cfg: TrainConfig) -> GovernorSpec | None:
+    """The speed governor a run trains with (``--governor``): the companion's default settings, or none."""
+    return GovernorSpec() if cfg.governor else None
 
 
 def plot_learning_curve(history: dict, path: Path, title: str) -> None:
@@ -377,7 +386,7 @@ class Trainer:
         """Deterministic evaluation on unseen seeds (test seeds by default), one summary per evaluation scenario,
         with the training episodes' time limit unless ``max_episode_steps`` is given."""
         cfg = replace(self.cfg, max_episode_steps=self.cfg.time_limit(max_episode_steps))
-        return {name: evaluate_scenario(agent_actor(self.agent), cfg, name, episodes, seed_offset + cfg.seed)
+        return {name: evaluate_scenario(agent_actor(self.agent, train_governor(cfg)), cfg, name, episodes, seed_offset + cfg.seed)
                 for name in evaluation_scenarios(cfg)}
 
     def validate(self, write=print) -> None:
@@ -441,6 +450,8 @@ class Trainer:
         returns = np.zeros(env.num_agents)
         low, high = env.action_spec.low_array(), env.action_spec.high_array()
         rng = np.random.default_rng(cfg.seed + k["env_steps"])
+        spec = train_governor(cfg)
+        govern = SwarmGovernor(env, spec) if spec is not None else None
         total = cfg.total_updates if cfg.total_updates > 0 else cfg.max_episodes
         unit = "update" if cfg.total_updates > 0 else "episode"
         # A bar on a terminal, a plain line a minute elsewhere (CI logs, Ray workers): see sitl.learn.progress.
@@ -461,9 +472,12 @@ class Trainer:
             else:
                 action = agent.act(obs.depth, obs.state, explore=True)
             state = obs.state
+            # The governor is part of the environment here: the UAVs fly the governed commands and the
+            # replay keeps the policy's own (its critic learns what a command is worth with the governor after it).
+            executed = govern(obs, action) if govern is not None else action
             teacher_action, teacher_valid = self.teacher_labels(rows)  # for the observation acted on
             privileged = env_privileged_features(env)[rows] if agent.privileged_dim else None
-            obs, reward, terminated, truncated, info = env.step(action)
+            obs, reward, terminated, truncated, info = env.step(executed)
             next_privileged = env_privileged_features(env)[rows] if agent.privileged_dim else None
             buffer.add(rows, state[rows], agent.to_unit_action(action[rows]), reward[rows], obs.depth[rows, -1],
                        obs.state[rows], terminated[rows], teacher_action, teacher_valid, privileged, next_privileged,
@@ -605,7 +619,8 @@ class Trainer:
         task = TaskSpec(collision_radius_m=self.sim_config.collision_radius_m,
                         arrival_radius_m=self.sim_config.reward.arrival_radius_m,
                         max_episode_steps=self.sim_config.max_episode_steps)
-        export_policy(self.agent, path, self.sim_config.control_period_s, provenance, task)
+        export_policy(self.agent, path, self.sim_config.control_period_s, provenance, task,
+                      governor=train_governor(cfg))
         (self.run_dir / "final_eval.json").write_text(json.dumps(provenance, indent=2))
         self.writer.close()
         for name, summary in summaries.items():

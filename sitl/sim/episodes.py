@@ -15,6 +15,7 @@ from typing import Protocol
 
 import numpy as np
 
+from companion.governor import GovernorSpec, SpeedGovernor
 from sitl.sim.config import SimConfig
 from sitl.sim.env import Observation, SwarmEnv
 from sitl.sim.metrics import UAVRecord
@@ -45,6 +46,35 @@ def depth_state_actor(act: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> Ac
     E.g. a training agent's deterministic actor or a loaded policy's ``act``.
     """
     return lambda env: (lambda obs: act(obs.depth, obs.state))
+
+
+class SwarmGovernor:
+    """The companion's speed governor (:mod:`companion.governor`) on the commands of every UAV of one
+    environment, on each UAV's newest depth frame, as the companion applies it after the policy.
+
+    Each UAV keeps its own turn in progress; a UAV whose flight has just started has none.
+    """
+
+    def __init__(self, env: SwarmEnv, spec: GovernorSpec) -> None:
+        self.env = env
+        self.governor = SpeedGovernor(env.config.camera, spec)
+        self.turning = np.zeros(env.num_agents, dtype=np.float32)  # +1 right, -1 left, 0 none
+
+    def __call__(self, obs: Observation, commands: np.ndarray) -> np.ndarray:
+        """The governed commands [M, 3] (a copy); rows of UAVs that no longer act are left as they are."""
+        out = np.array(commands, dtype=np.float32)  # a copy: the caller may reuse its array
+        rows = np.flatnonzero(self.env.acting)
+        if rows.size:
+            self.turning[rows[self.env.flight_steps[rows] == 0]] = 0.0
+            out[rows], _, _, self.turning[rows] = self.governor.apply(obs.depth[rows, -1], out[rows],
+                                                                      self.turning[rows])
+        return out
+
+
+def governed_actor(actor: Actor, spec: GovernorSpec, env: SwarmEnv) -> Actor:
+    """``actor`` with the speed governor ``spec`` after it (:class:`SwarmGovernor`)."""
+    govern = SwarmGovernor(env, spec)
+    return lambda obs: govern(obs, actor(obs))
 
 
 def run_episodes(make_actor: ActorFactory, sim_config: SimConfig, seed: int, episodes: int,
