@@ -239,7 +239,8 @@ def build_parser() -> argparse.ArgumentParser:
                              f"{GovernorSpec().stop_distance_m:g} m before the nearest depth point in a "
                              f"+-{GovernorSpec().corridor_half_width_m:g} m corridor ahead, and turn towards the freer "
                              "side until the way is clear (PX4's collision prevention does nothing in Offboard; default "
-                             "off: it costs dense converging traffic, docs/companion.md)")
+                             "off: it costs dense converging traffic, docs/companion.md). A policy trained with the "
+                             "governor (policy.json 'governor') always flies with it, with the file's settings")
     output = parser.add_argument_group("output")
     output.add_argument("--log", type=_output_file, default="-", metavar="PATH",
                         help="JSON-lines log of every control step and event (default '-': stdout)")
@@ -346,6 +347,9 @@ def _fly(args: argparse.Namespace, log) -> int:
               providers=getattr(policy.module, "providers", None))  # what onnxruntime really uses
     for note in policy.notes:  # how an older policy file was read
         log.event("model_note", note)
+    if policy.governor is not None:  # trained with it: it always flies with it (--governor or not)
+        log.event("model_note", "the policy was trained with the speed governor after it: the companion applies it "
+                                "with the file's settings")
 
     # 2. The camera.
     from companion.depth_sources import DepthSourceError, open_depth_source

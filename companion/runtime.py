@@ -174,7 +174,7 @@ class CompanionConfig:
     camera_sync: bool = True
     takeoff_timeout_s: float = 60.0
     obstacle_distance: bool = True  # publish OBSTACLE_DISTANCE per depth frame (companion.obstacle_distance)
-    governor: GovernorSpec | None = None  # speed governor after the policy (companion.governor); None: off
+    governor: GovernorSpec | None = None  # speed governor after the policy (companion.governor); None: off unless the policy has one
 
 
 class Companion:
@@ -198,7 +198,9 @@ class Companion:
         self.high = policy.action.high_array().astype(np.float64)
         self.stack = DepthFrameStack(1, policy.camera)
         self.obstacles = ObstacleDistancePublisher(policy.camera, link) if config.obstacle_distance else None
-        self.governor = SpeedGovernor(policy.camera, config.governor) if config.governor is not None else None
+        # A policy trained with the governor flies with its own settings; others with the configured one, if any.
+        governor = policy.governor if policy.governor is not None else config.governor
+        self.governor = SpeedGovernor(policy.camera, governor) if governor is not None else None
         self.goal_ned = None if config.goal_ned is None else np.asarray(config.goal_ned, dtype=np.float64)
 
         self.phase = FlightPhase.WAITING_FOR_TELEMETRY

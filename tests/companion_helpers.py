@@ -23,6 +23,7 @@ os.environ["MAVLINK20"] = "1"
 import torch  # noqa: E402
 from torch import nn  # noqa: E402
 
+from companion.governor import GovernorSpec  # noqa: E402
 from companion.policy import build_metadata, save_policy  # noqa: E402
 from companion.spec import REALSENSE_D435, ActionSpec, CameraSpec  # noqa: E402
 
@@ -62,15 +63,15 @@ class GoalSeeker(nn.Module):
 
 
 def make_policy(path: Path, *, period_s: float = CONTROL_PERIOD_S, camera: CameraSpec | None = None,
-                nan_above_speed: float = 0.0, brake_depth_m: float = 0.0) -> Path:
+                nan_above_speed: float = 0.0, brake_depth_m: float = 0.0, governor: GovernorSpec | None = None) -> Path:
     """Save a contract-following TorchScript test policy at ``path`` (default camera: the D435 preset,
-    what ``sitl.vehicle`` carries by default)."""
+    what ``sitl.vehicle`` carries by default; ``governor``: declared as trained with it)."""
     camera = camera or REALSENSE_D435
     action = ActionSpec()
     module = GoalSeeker(list(action.low), list(action.high), nan_above_speed, brake_depth_m)
     provenance = {"method": "test goal seeker", "scenario": "none", "steps": 0, "wall_time_s": 0.0,
                   "git_commit": "test", "evaluation": {}}
-    save_policy(module, build_metadata(camera, action, period_s, provenance), path)
+    save_policy(module, build_metadata(camera, action, period_s, provenance, governor=governor), path)
     return path
 
 

@@ -17,6 +17,7 @@ import time
 import numpy as np
 import pytest
 
+from companion.governor import GovernorSpec
 from companion.recording import read_recording
 from tests.companion_helpers import GroundStation, Rig, ScenarioPool, make_policy, scenario
 
@@ -82,8 +83,9 @@ def _start_obstacle(rig: Rig, tmp) -> None:
 def _start_governor(rig: Rig, tmp) -> None:
     rig.trace = tmp / "trace.jsonl"  # the vehicle's true positions at 10 Hz
     rig.start_vehicle("--airborne", "--start", "0,0,-3", "--cylinder", "10,0,0.5", "--trace", str(rig.trace))
-    rig.start_companion(make_policy(tmp / "policy.pt"), "--goal", "20,0,-3", "--arm", "--takeoff", "3", "--governor",
-                        "--exit-on-arrival", "--timeout", "60")
+    # No --governor: the file says the policy was trained with it (policy.json "governor"), so it flies with it.
+    rig.start_companion(make_policy(tmp / "policy.pt", governor=GovernorSpec()), "--goal", "20,0,-3", "--arm",
+                        "--takeoff", "3", "--exit-on-arrival", "--timeout", "60")
 
 
 @pytest.fixture(scope="module")
@@ -294,12 +296,14 @@ def test_depth_stops_the_vehicle_before_an_obstacle_and_the_recording_replays(ri
 
 @scenario("governor")
 def test_the_governor_takes_a_policy_that_never_brakes_round_a_pole(rigs):
-    """companion --governor: a goal seeker that flies at full speed straight through a 0.5 m pole stops
-    short of it, turns away, slides round it and arrives, never within touching distance."""
+    """The companion's speed governor (here from the policy file, as for a policy trained with it): a goal
+    seeker that flies at full speed straight through a 0.5 m pole stops short of it, turns away, slides
+    round it and arrives, never within touching distance."""
     rig = rigs["governor"]
     code = rig.wait_companion(90)
     rig.procs.stop_all()
     assert code == 0, rig.procs.stderr("companion")[-3000:]
+    assert any("trained with the speed governor" in e["message"] for e in _events(rig, "model_note"))
     (arrived,) = _events(rig, "arrived")
     assert arrived["dist_m"] <= 0.5
     governed = [s for s in _steps(rig) if s.get("governor")]

@@ -154,3 +154,68 @@ def test_a_stored_flown_cell_is_reused_only_for_the_same_governor_settings(tmp_p
     assert run_flown_cell(cell, first, tmp_path, progress=False)[1] == "computed"
     assert run_flown_cell(cell, first, tmp_path, progress=False)[1] == "stored"
     assert run_flown_cell(cell, other, tmp_path, progress=False)[1] == "computed"  # same label, other settings
+
+
+def test_a_policy_trained_with_the_governor_carries_it_and_flies_with_it(tmp_path):
+    from companion.policy import PolicyFileError, build_metadata, load_policy, save_policy
+    from tests.companion_helpers import GoalSeeker, make_policy
+
+    plain = resolve_method(str(make_policy(tmp_path / "plain.pt")))
+    assert plain.governor is None and load_policy(plain.path).governor is None
+    spec = GovernorSpec(stop_distance_m=1.5, release_margin_m=math.inf)
+    governed = resolve_method(str(make_policy(tmp_path / "governed.pt", governor=spec)))
+    assert governed.governor == spec and governed.label.endswith("+governor")
+    # --governor on top changes nothing: the file's settings fly, as in the companion
+    assert governed.with_governor(GovernorSpec()) is governed
+    meta = load_policy(governed.path).metadata
+    assert meta["governor"]["release_margin_m"] is None  # JSON has no infinity: null, read back as inf
+
+    def refused(governor) -> str:
+        camera = CAMERA_PRESETS["realsense_d435"]
+        bad = build_metadata(camera, load_policy(governed.path).action, 0.1, {}) | {"governor": governor}
+        path = tmp_path / "bad.pt"
+        module = GoalSeeker([0.0, -0.5, -0.5], [2.0, 0.5, 0.5], 0.0, 0.0)
+        save_policy(module, bad, path)
+        with pytest.raises(PolicyFileError) as err:
+            load_policy(path)
+        assert "\n" not in str(err.value)
+        return str(err.value)
+
+    good = GovernorSpec().to_dict()
+    assert "unknown settings ['speed']" in refused(good | {"speed": 1})
+    assert "governor stop_distance_m must be a number" in refused(good | {"stop_distance_m": "1"})
+    assert "governor delay_s must be a number" in refused({k: v for k, v in good.items() if k != "delay_s"})
+    assert "must be a finite number >= 0" in refused(good | {"brake_acc_m_s2": -1.0})
+    assert "governor must be a JSON object" in refused([1, 2])
+
+
+def test_training_with_the_governor_flies_governed_commands_and_exports_the_governor(tmp_path):
+    """``sitl.train --governor``: the UAVs fly the governed commands, the replay keeps the policy's own
+    (the governor is part of the environment), and the exported file carries the governor."""
+    from companion.policy import load_policy
+    from sitl.learn.config import PRESETS, resolve_configs
+    from sitl.learn.trainer import make_trainer
+
+    cfg, agent_cfg = resolve_configs(
+        {**PRESETS["flown"]["train"], "preset": "flown", "governor": True, "scenario": "mixed",
+         "circle_fraction": 0.0, "obstacle_fraction": 1.0, "num_worlds": 2, "total_updates": 2, "init_steps": 600,
+         "batch_size": 16, "eval_every_updates": 0, "final_eval_episodes": 0},
+        {"hidden_dim": 32})
+    trainer = make_trainer(cfg, agent_cfg, tmp_path)
+    env, flown = trainer.env, []
+    step = env.step
+
+    def record(action):  # what the simulator is asked to fly, per acting UAV, in the replay's order
+        flown.append(np.array(action)[env.acting])
+        return step(action)
+
+    env.step = record
+    trainer.run()
+    buf = trainer.buffer
+    stored = buf.action[:buf.size]  # the policy's (here the initial random) actions, in [-1, 1]
+    flew = trainer.agent.to_unit_action(np.concatenate(flown)[:buf.size])
+    assert np.all(flew[:, 0] <= stored[:, 0] + 1e-5)  # the governor only ever lowers the forward speed
+    assert np.mean(flew[:, 0] < stored[:, 0] - 1e-3) > 0.01  # ... and did, among obstacles and other UAVs
+    assert np.any(np.abs(flew[:, 2] - stored[:, 2]) > 1e-3)  # ... and turned some away
+    np.testing.assert_array_equal(flew[:, 1], stored[:, 1])  # climb is never changed
+    assert load_policy(tmp_path / "policy.pt").governor == GovernorSpec()

@@ -67,10 +67,11 @@ class Method:
         return governed_actor(actor, self.governor, env)
 
     def with_governor(self, spec: GovernorSpec) -> Method:
-        """The same controller with the speed governor after it (:mod:`companion.governor`); one that
-        already has a governor (a policy trained with it) keeps its label and flies ``spec`` instead."""
-        label = self.label if self.governor is not None else self.label + GOVERNED_SUFFIX
-        return dataclasses.replace(self, label=label, governor=spec)
+        """The same controller with the speed governor after it (:mod:`companion.governor`). One that already
+        has one (a policy trained with it) keeps its own, as the companion does."""
+        if self.governor is not None:
+            return self
+        return dataclasses.replace(self, label=self.label + GOVERNED_SUFFIX, governor=spec)
 
     def _make_ungoverned_actor(self, env: SwarmEnv) -> Actor:
         name = self.label.removesuffix(GOVERNED_SUFFIX)  # the controller the governor follows

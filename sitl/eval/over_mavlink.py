@@ -31,7 +31,9 @@ def evaluate_beside_in_process(method: Method, settings: EvalSettings, in_proces
     samples = [sample_scenario(settings.num_uavs, settings.scenario, rng) for _ in range(settings.episodes)]
     sim_config = in_process.sim_config
     camera = sim_config.camera
-    if method.governor is not None and method.governor != GovernorSpec():
+    # A policy trained with the governor carries it: the companions read its settings from the file.
+    from_file = method._policy is not None and getattr(method._policy, "governor", None) is not None
+    if method.governor is not None and not from_file and method.governor != GovernorSpec():
         raise EvaluationError("over MAVLink the companions fly the governor with its default settings only")
     mav_settings = MavlinkSettings(
         policy_path=str(method.path), start=start, base_port=base_port, depth_port=depth_port,
@@ -40,7 +42,7 @@ def evaluate_beside_in_process(method: Method, settings: EvalSettings, in_proces
         time_limit_s=settings.max_episode_steps * sim_config.control_period_s,
         task=TaskSpec(collision_radius_m=sim_config.collision_radius_m,  # scored as the in-process run beside it
                       arrival_radius_m=sim_config.reward.arrival_radius_m, max_episode_steps=settings.max_episode_steps),
-        governor=method.governor is not None)
+        governor=method.governor is not None and not from_file)
     evaluation = evaluate_over_mavlink(samples, mav_settings, out, progress=progress)
     label = f"{method.label} (MAVLink)"
     result = EvalResult(replace(method, label=label), settings, sim_config, evaluation.records,
