@@ -227,6 +227,42 @@ def test_the_blind_motion_reward_prices_speed_outside_the_camera_view_only():
         TrainConfig(blind_motion_reward=0.5)
 
 
+def test_the_corridor_price_charges_forward_speed_the_governor_would_not_allow():
+    """``--corridor-speed-reward W``: flying at full speed at a pole pays W per m/s above the speed
+    governor's cap on the new frame, more the nearer it gets; flying at the same speed in open air
+    pays nothing; W = 0 (the paper) changes nothing."""
+    from companion.governor import SpeedGovernor
+    from companion.spec import REALSENSE_D435
+    from sitl.learn.config import TrainConfig, make_sim_config
+
+    def run(w: float, pole: bool) -> tuple[np.ndarray, np.ndarray]:
+        reward = make_sim_config(TrainConfig(corridor_speed_reward=w), num_worlds=1).reward
+        cfg = SimConfig(num_uavs=1, reward=reward, camera=REALSENSE_D435,
+                        scenario=ScenarioConfig(name="random", density=0.01, min_goal_distance_m=0.0))
+        cylinders = np.array([[[0.0, 0.0, 0.2, -30.0, 0.0]]]) if pole else None
+        env = SwarmEnv(cfg, seed=0, cylinders=cylinders)
+        env.reset()
+        env.dynamics.reset(np.array([0]), np.array([[-4.0, 0.0, -8.0]]), np.array([0.0]))
+        env.goal_ned[0] = [6.0, 0.0, -8.0]
+        rewards, excess = [], []
+        for _ in range(12):
+            obs, r, term, *_ = env.step(np.array([[2.0, 0.0, 0.0]], dtype=np.float32))
+            if term[0]:
+                break
+            rewards.append(r[0])
+            excess.append(max(2.0 - SpeedGovernor(REALSENSE_D435).forward_limit(obs.depth[:, -1])[1][0], 0.0))
+        return np.array(rewards), np.array(excess)
+
+    paper, excess = run(0.0, pole=True)
+    priced, _ = run(-1.0, pole=True)
+    assert excess[-1] > 0.3 and np.all(np.diff(excess[excess > 0]) >= 0)  # the pole comes closer
+    np.testing.assert_allclose(priced, paper - excess[:len(priced)], atol=1e-5)
+    np.testing.assert_allclose(run(-1.0, pole=False)[0], run(0.0, pole=False)[0], atol=1e-6)
+    assert make_sim_config(TrainConfig(), num_worlds=1).reward.w_corridor == 0.0
+    with pytest.raises(ValueError, match="corridor_speed_reward"):
+        TrainConfig(corridor_speed_reward=0.5)
+
+
 def test_the_training_config_sets_eq4s_avoid_weight():
     """``--avoid-weight W``: a UAV 2.7 m from another's surface pays W * (5 - 2.7) per step (paper W = -0.05)."""
     from sitl.learn.config import TrainConfig, make_sim_config

@@ -103,6 +103,10 @@ class TrainConfig:
                                         "reward per step and per m/s of speed while the UAV's velocity points "
                                         "outside its camera's view (paper: 0; docs/training.md 'Flying where the "
                                         "camera looks')")
+    corridor_speed_reward: float = _param(RewardConfig.w_corridor,
+                                          "reward per step and per m/s of forward command above the speed governor's "
+                                          "cap on the new depth frame (paper: 0; docs/training.md 'A price on "
+                                          "outrunning the corridor')")
     max_episode_steps: int = _param(200, "episode time limit in 0.1 s steps of training and of the trainer's own "
                                          "evaluations (validation, rescoring and policy.json's final evaluation); "
                                          "swarm_test flies its own --max-steps (default "
@@ -200,6 +204,8 @@ class TrainConfig:
             raise ValueError(f"avoid_weight must be in [-10, 0], got {self.avoid_weight}")
         if not -10.0 <= self.blind_motion_reward <= 0.0:
             raise ValueError(f"blind_motion_reward must be in [-10, 0], got {self.blind_motion_reward}")
+        if not -10.0 <= self.corridor_speed_reward <= 0.0:
+            raise ValueError(f"corridor_speed_reward must be in [-10, 0], got {self.corridor_speed_reward}")
         if not 0.0 <= self.teacher_bc_weight <= 100.0:
             raise ValueError(f"teacher_bc_weight must be in [0, 100], got {self.teacher_bc_weight}")
         if not 0.0 < self.checkpoint_every_s < math.inf:
@@ -387,6 +393,7 @@ def make_sim_config(cfg: TrainConfig, num_worlds: int, record_paths: bool = Fals
                      reward=RewardConfig(arrival_radius_m=cfg.arrival_radius_m, r_collision=cfg.collision_reward,
                                          r_collision_uav_extra=cfg.uav_collision_extra_reward,
                                          w_avoid=cfg.avoid_weight, w_blind=cfg.blind_motion_reward,
+                                         w_corridor=cfg.corridor_speed_reward,
                                          avoid_counts_ground=cfg.avoid_counts_ground))
 
 

@@ -588,6 +588,8 @@ class Trainer:
         }
         if cfg.blind_motion_reward:  # not in the paper's reward
             provenance["blind_motion_reward"] = cfg.blind_motion_reward
+        if cfg.corridor_speed_reward:  # not in the paper's reward either
+            provenance["corridor_speed_reward"] = cfg.corridor_speed_reward
         if cfg.avoid_weight != RewardConfig.w_avoid:  # not the paper's eq. 4 weight
             provenance["avoid_weight"] = cfg.avoid_weight
         if cfg.obstacle_density:  # the training mix's obstacles episodes at their own density

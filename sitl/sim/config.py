@@ -48,6 +48,11 @@ class RewardConfig:
     #: camera's field of view (0, the paper: no such term). A training option against flying blind
     #: (climbing or descending steeply at low forward speed): docs/training.md "Flying where the camera looks".
     w_blind: float = 0.0
+    #: Reward per step and per m/s that the commanded forward speed exceeds the speed governor's cap
+    #: (:mod:`companion.governor`, default settings) on the UAV's new depth frame: a price on flying at
+    #: what the corridor ahead shows faster than one could stop (0, the paper: no such term). A training
+    #: option: docs/training.md "A price on outrunning the corridor".
+    w_corridor: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from companion.governor import SpeedGovernor
 from companion.observation import DepthFrameStack, build_state, clean_depth
 from companion.spec import DEFAULT_ACTION_SPEC, ActionSpec
 from sitl.sim.camera import DepthCamera, blind_speed_m_s
@@ -87,6 +88,8 @@ class SwarmEnv:
         # Each camera's mount pitch (rad, positive up), drawn per episode (SimConfig.mount_pitch_jitter_deg).
         self.mount_pitch_rad = np.full(self.num_agents, config.camera.mount_pitch_rad)
         self.nearest_object_m = np.full(self.num_agents, config.camera.max_range_m)  # d_min without the ground
+        # The corridor price's judge (RewardConfig.w_corridor): the companion's governor, default settings.
+        self._corridor_governor = SpeedGovernor(config.camera) if config.reward.w_corridor else None
 
         m = self.num_agents
         self.goal_ned = np.zeros((m, 3))
@@ -229,7 +232,10 @@ class SwarmEnv:
         d_min = nearest_depth_m(depth) if cfg.reward.avoid_counts_ground else self.nearest_object_m
         blind = (blind_speed_m_s(dynamics.vel_ned, dynamics.yaw_rad, self.mount_pitch_rad, cfg.camera)
                  if cfg.reward.w_blind else None)
-        reward = step_reward(prev_dist, dist, arrived, collided, d_min, cfg.reward, hit_uav, blind)
+        excess = None
+        if cfg.reward.w_corridor:  # on the frame the policy will see next, as the governor would judge it
+            excess = np.maximum(cmd[:, 0] - self._corridor_governor.forward_limit(depth)[1], 0.0)
+        reward = step_reward(prev_dist, dist, arrived, collided, d_min, cfg.reward, hit_uav, blind, excess)
         reward = np.where(acting, reward, 0.0).astype(np.float32)
         terminated = collided | arrived
         info = {"acting": acting, "outcome": self.outcome.copy(), "collided": collided, "arrived": arrived}

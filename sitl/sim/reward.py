@@ -1,7 +1,8 @@
 """The paper's reward, eqs. 2-4: progress to the goal plus a penalty for nearby surfaces.
 
-Beside it, one training option that is not the paper's: a price on flying where the camera does
-not look (``RewardConfig.w_blind``, :func:`sitl.sim.camera.blind_speed_m_s`).
+Beside it, two training options that are not the paper's: a price on flying where the camera does
+not look (``RewardConfig.w_blind``, :func:`sitl.sim.camera.blind_speed_m_s`) and one on commanding
+more forward speed than the corridor ahead allows (``RewardConfig.w_corridor``).
 """
 
 from __future__ import annotations
@@ -38,13 +39,17 @@ def avoid_reward(collided: np.ndarray, d_min_m: np.ndarray, cfg: RewardConfig,
 
 def step_reward(prev_dist_m: np.ndarray, dist_m: np.ndarray, arrived: np.ndarray, collided: np.ndarray,
                 d_min_m: np.ndarray, cfg: RewardConfig, hit_uav: np.ndarray | None = None,
-                blind_speed: np.ndarray | None = None) -> np.ndarray:
+                blind_speed: np.ndarray | None = None, corridor_excess: np.ndarray | None = None) -> np.ndarray:
     """Eq. 2: r = r_goal + r_avoid. A UAV that collides gets no arrival bonus in the same step.
 
     ``blind_speed`` (:func:`sitl.sim.camera.blind_speed_m_s`) adds ``cfg.w_blind`` per m/s on the steps that end
-    neither in a collision nor in arrival (not in the paper; ``w_blind`` 0 leaves eq. 2 as it is).
+    neither in a collision nor in arrival (not in the paper; ``w_blind`` 0 leaves eq. 2 as it is);
+    ``corridor_excess`` (m/s of forward command above the governor's cap) adds ``cfg.w_corridor`` per m/s on the
+    same steps (not in the paper either).
     """
     reward = goal_reward(prev_dist_m, dist_m, arrived & ~collided, cfg) + avoid_reward(collided, d_min_m, cfg, hit_uav)
     if blind_speed is not None and cfg.w_blind:
         reward = reward + np.where(collided | arrived, 0.0, cfg.w_blind * blind_speed)
+    if corridor_excess is not None and cfg.w_corridor:
+        reward = reward + np.where(collided | arrived, 0.0, cfg.w_corridor * corridor_excess)
     return reward
