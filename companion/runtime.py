@@ -174,7 +174,8 @@ class CompanionConfig:
     camera_sync: bool = True
     takeoff_timeout_s: float = 60.0
     obstacle_distance: bool = True  # publish OBSTACLE_DISTANCE per depth frame (companion.obstacle_distance)
-    governor: GovernorSpec | None = None  # speed governor after the policy (companion.governor); None: off unless the policy has one
+    # The speed governor after the policy (companion.governor); None: off, unless the policy file has one.
+    governor: GovernorSpec | None = None
 
 
 class Companion:

@@ -164,7 +164,8 @@ def test_a_policy_trained_with_the_governor_carries_it_and_flies_with_it(tmp_pat
     assert plain.governor is None and load_policy(plain.path).governor is None
     spec = GovernorSpec(stop_distance_m=1.5, release_margin_m=math.inf)
     governed = resolve_method(str(make_policy(tmp_path / "governed.pt", governor=spec)))
-    assert governed.governor == spec and governed.label.endswith("+governor")
+    assert governed.governor == spec and governed.label.endswith("+governor") and governed.trained_with_governor
+    assert not plain.trained_with_governor and not resolve_method("straight").with_governor(spec).trained_with_governor
     # --governor on top changes nothing: the file's settings fly, as in the companion
     assert governed.with_governor(GovernorSpec()) is governed
     meta = load_policy(governed.path).metadata

@@ -66,6 +66,11 @@ class Method:
             return actor
         return governed_actor(actor, self.governor, env)
 
+    @property
+    def trained_with_governor(self) -> bool:
+        """A policy file that carries its governor (policy.json ``governor``): it always flies with it."""
+        return getattr(self._policy, "governor", None) is not None
+
     def with_governor(self, spec: GovernorSpec) -> Method:
         """The same controller with the speed governor after it (:mod:`companion.governor`). One that already
         has one (a policy trained with it) keeps its own, as the companion does."""

@@ -32,7 +32,7 @@ def evaluate_beside_in_process(method: Method, settings: EvalSettings, in_proces
     sim_config = in_process.sim_config
     camera = sim_config.camera
     # A policy trained with the governor carries it: the companions read its settings from the file.
-    from_file = method._policy is not None and getattr(method._policy, "governor", None) is not None
+    from_file = method.trained_with_governor
     if method.governor is not None and not from_file and method.governor != GovernorSpec():
         raise EvaluationError("over MAVLink the companions fly the governor with its default settings only")
     mav_settings = MavlinkSettings(

@@ -79,10 +79,10 @@ class TrainConfig:
                                   "realsense_d435; empty: the preset's; docs/training.md 'The depth image's grid')")
     camera_noise: bool = _param(False, "train with the stereo noise model (z^2 error, holes reported as 0)")
     mount_pitch_jitter_deg: float = _param(0.0, "camera mount pitch drawn per episode within +-deg of the mount")
-    governor: bool = _param(False, "fly the companion's speed governor (companion.governor, its default settings) after "
+    governor: bool = _param(False, "fly the companion's speed governor (companion.governor, default settings) after "
                                    "the policy in training, validation and the final choice; the exported policy.json "
                                    "records it and swarm_test and the companion then apply it (docs/training.md "
-                                   "'Training with the governor')")
+                                   "'Training with the governor in the loop')")
     frame_stride: int = _param(1, "control steps between two of the 3 stacked depth frames (1: consecutive, the "
                                   "paper; 3: the stack spans 0.6 s; docs/training.md 'A frame stack spanning longer')")
     frame_ages: str = _param("", "age in control steps of each of the 3 stacked frames, oldest first, ending in 0, "

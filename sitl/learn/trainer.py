@@ -386,7 +386,8 @@ class Trainer:
         """Deterministic evaluation on unseen seeds (test seeds by default), one summary per evaluation scenario,
         with the training episodes' time limit unless ``max_episode_steps`` is given."""
         cfg = replace(self.cfg, max_episode_steps=self.cfg.time_limit(max_episode_steps))
-        return {name: evaluate_scenario(agent_actor(self.agent, train_governor(cfg)), cfg, name, episodes, seed_offset + cfg.seed)
+        make_actor = agent_actor(self.agent, train_governor(cfg))
+        return {name: evaluate_scenario(make_actor, cfg, name, episodes, seed_offset + cfg.seed)
                 for name in evaluation_scenarios(cfg)}
 
     def validate(self, write=print) -> None:
