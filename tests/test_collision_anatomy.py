@@ -52,6 +52,18 @@ def test_head_on_collisions_are_seen_by_both(tmp_path, capsys):
     assert "| all UAV-UAV collisions |" in capsys.readouterr().out
 
 
+def test_the_anatomy_of_a_governed_controller(tmp_path):
+    """--governor: the same head-on pairs, with the speed governor after the straight line, are classified
+    as that controller's (they stop and pass: fewer collisions than straight's one per pair)."""
+    out = tmp_path / "anatomy.json"
+    assert main(["--policy", "straight", "--governor", "--scenario", "circle", "--n", "2", "--episodes", "10",
+                 "--json", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["method"] == "straight+governor"
+    assert result["collisions"] < 10 and math.isclose(result["collisions"] / result["uav_episodes"],
+                                                      result["collision_uav_rate"])
+
+
 def test_moving_in_view_is_the_velocity_direction_in_the_frustum():
     """Climbing at 0.5 m/s is blind to a D435 (58 deg vertical FOV) unless the UAV also flies forward fast enough."""
     hfov, vfov = math.radians(87), math.radians(58)

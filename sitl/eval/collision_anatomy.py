@@ -42,6 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from companion.frames import ned_to_frd
+from companion.governor import GovernorSpec
 from sitl.cli_args import camera_preset
 from sitl.sim.camera import in_frustum
 from sitl.sim.config import CIRCLE_RADIUS_M, DENSITIES, ScenarioConfig, SimConfig
@@ -49,7 +50,7 @@ from sitl.sim.collision import distance_to_obstacles_m
 from sitl.sim.env import COLLISION_UAV, TIMEOUT, SwarmEnv
 from sitl.eval.evaluate import EvalSettings, evaluate_method, sim_config_for
 from sitl.eval.flown import flown_cells
-from sitl.eval.methods import DEFAULT_POLICY, EvaluationError, resolve_method
+from sitl.eval.methods import DEFAULT_POLICY, GOVERNED_SUFFIX, EvaluationError, resolve_method
 from sitl.eval.visibility import camera_fov_rad, in_view
 
 #: The flown protocol's kinematic cells, the ones this tool can fly (not the JSBSim cell: the tool observes the
@@ -257,9 +258,12 @@ class _Observers:
             o.after_step(env, info)
 
 
-def analyse(policy: str, settings: EvalSettings, progress: bool = False) -> dict:
-    """Fly ``settings.episodes`` episodes (as ``swarm_test`` does); classify every UAV-UAV collision and timeout."""
+def analyse(policy: str, settings: EvalSettings, progress: bool = False, governor: GovernorSpec | None = None) -> dict:
+    """Fly ``settings.episodes`` episodes (as ``swarm_test`` does, with the speed ``governor`` after the
+    controller if given); classify every UAV-UAV collision and timeout."""
     method = resolve_method(policy)
+    if governor is not None:
+        method = method.with_governor(governor)
     config = sim_config_for(method, settings, 1)
     collisions, timeouts, blind = CollisionObserver(config), TimeoutObserver(config), BlindFlightObserver(config)
     result = evaluate_method(method, settings, progress=progress, desc="collision anatomy",
@@ -267,7 +271,7 @@ def analyse(policy: str, settings: EvalSettings, progress: bool = False) -> dict
     uav_episodes = settings.episodes * settings.num_uavs
     events = sorted(collisions.events, key=lambda e: (e["episode"], e["time_s"], e["uav"]))
     timed_out = sorted(timeouts.events, key=lambda e: (e["episode"], e["uav"]))
-    return {"policy": policy, "scenario": settings.describe(), "uav_episodes": uav_episodes,
+    return {"policy": policy, "method": method.label, "scenario": settings.describe(), "uav_episodes": uav_episodes,
             "lookback_s": LOOKBACK_S, "collisions": len(events),
             "collision_uav_rate": result.summary["collision_uav_rate"], "events": events,
             "summary": summarize_events(events, uav_episodes),
@@ -319,7 +323,8 @@ def format_table(result: dict) -> str:
                  s[f"saw_with_warning_at_least_{WARNING_LONG_S:g}_s"]))
     rows += [(f"collided {k[5:-2].replace('_', '-')} s after the start", v) for k, v in s.items()
              if k.startswith("time_")]
-    lines = [f"{result['policy']}: {result['scenario']} ({result['uav_episodes']} UAV-episodes)",
+    flown_as = f" ({result['method']})" if result.get("method", "").endswith(GOVERNED_SUFFIX) else ""
+    lines = [f"{result['policy']}{flown_as}: {result['scenario']} ({result['uav_episodes']} UAV-episodes)",
              "| | UAVs | share of collisions | per UAV-episode |", "| --- | --- | --- | --- |"]
     lines += [f"| {name} | {v} | {v / total:.2f} | {v / result['uav_episodes']:.3f} |" for name, v in rows]
     lines.append(f"median speed at the collision: {s['median_speed_when_saw_m_s']:.2f} m/s when the collider had "
@@ -368,6 +373,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--obstacle-clearance", type=float, metavar="M",
                         help="with --cell obstacles: keep obstacles M m from every start and goal instead of the "
                              f"scene's {ScenarioConfig.obstacle_clearance_m:g} m (does a pole beside the goal stall it?)")
+    parser.add_argument("--governor", action="store_true",
+                        help="fly the companion's speed governor (default settings) after the controller, as "
+                             "swarm_test --governor does")
     parser.add_argument("--json", type=Path, help="write the result with every collision and timeout here")
     args = parser.parse_args(argv)
     if args.episodes < 1 or args.n < 2:
@@ -395,7 +403,7 @@ def main(argv: list[str] | None = None) -> int:
         settings = EvalSettings(scenario=scenario, num_uavs=args.n, episodes=args.episodes, seed=args.seed,
                                 record_paths=False)
     try:
-        result = analyse(args.policy, settings, progress=True)
+        result = analyse(args.policy, settings, progress=True, governor=GovernorSpec() if args.governor else None)
     except EvaluationError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
