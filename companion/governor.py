@@ -40,6 +40,10 @@ import numpy as np
 from companion.spec import CameraSpec
 
 
+#: The settings that may be infinite ("never"; null in JSON, policy.json's ``governor``).
+MAY_BE_INFINITE = ("release_margin_m",)
+
+
 @dataclass(frozen=True)
 class GovernorSpec:
     """The governor's settings (the defaults are the measured ones, docs/results.md)."""
@@ -57,7 +61,7 @@ class GovernorSpec:
 
     def __post_init__(self) -> None:
         for name, value in asdict(self).items():
-            if math.isnan(value) or value < 0.0 or (math.isinf(value) and name != "release_margin_m"):
+            if math.isnan(value) or value < 0.0 or (math.isinf(value) and name not in MAY_BE_INFINITE):
                 raise ValueError(f"governor {name} must be a finite number >= 0, got {value}")
         if self.brake_acc_m_s2 <= 0.0:
             raise ValueError(f"governor brake_acc_m_s2 must be > 0, got {self.brake_acc_m_s2}")

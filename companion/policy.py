@@ -53,7 +53,7 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.governor import GovernorSpec
+from companion.governor import MAY_BE_INFINITE, GovernorSpec
 from companion.spec import (
     CONTROL_PERIOD_MAX_S,
     CONTROL_PERIOD_MIN_S,
@@ -350,7 +350,7 @@ def _check_governor(governor: object, path: str) -> GovernorSpec | None:
     values = {}
     for name in names:
         value = governor.get(name)
-        if name == "release_margin_m" and value is None:  # JSON has no inf: null is "never sticky"
+        if name in MAY_BE_INFINITE and value is None:  # JSON has no inf: null is "never"
             values[name] = math.inf
             continue
         values[name] = _finite_number(value, path, f"governor {name}")

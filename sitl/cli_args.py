@@ -16,6 +16,7 @@ import tempfile
 from pathlib import Path
 
 from companion.depth_wire import HEADER_SIZE, MAX_DATAGRAM
+from companion.governor import GovernorSpec
 
 #: Most vehicles one process simulates: vehicle i is MAVLink system i + 1 (1..255).
 MAX_VEHICLES = 255
@@ -266,6 +267,16 @@ def cylinder_rows(cylinders: list[list[float]] | None) -> list[list[float]] | No
     if not cylinders:
         return None
     return [[c[0], c[1], c[2], -(c[3] if len(c) == 4 else 30.0), 0.0] for c in cylinders]
+
+
+def add_governor_flag(parser: argparse.ArgumentParser, extra_help: str = "") -> None:
+    """``--governor``: the companion's speed governor (default settings) after the controller."""
+    spec = GovernorSpec()
+    parser.add_argument("--governor", action="store_true",
+                        help="apply the companion's speed governor (companion --governor: stop before what is straight "
+                             f"ahead, turn away when stopped; {spec.stop_distance_m:g} m stop distance, "
+                             f"{spec.corridor_half_width_m:g} m corridor) to the controller's commands; its label gains "
+                             "+governor" + extra_help)
 
 
 def camera_preset(text: str) -> str:

@@ -41,6 +41,7 @@ from pathlib import Path
 from companion.governor import GovernorSpec
 from companion.spec import DEFAULT_TASK_SPEC
 from sitl.cli_args import (
+    add_governor_flag,
     ArgumentParser,
     camera_preset,
     MAX_THREADS,
@@ -75,11 +76,7 @@ MAX_RADIUS_M = 10_000.0
 
 
 def _add_governor(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--governor", action="store_true",
-                        help="apply the companion's speed governor (companion --governor: stop before what is straight "
-                             f"ahead, turn away when stopped; {GovernorSpec().stop_distance_m:g} m stop distance, "
-                             f"{GovernorSpec().corridor_half_width_m:g} m corridor) to the controller's commands; "
-                             "its label gains +governor, the straight reference stays plain")
+    add_governor_flag(parser, ", the straight reference stays plain")
 
 
 def _add_common(parser: argparse.ArgumentParser) -> None:

@@ -43,7 +43,7 @@ import numpy as np
 
 from companion.frames import ned_to_frd
 from companion.governor import GovernorSpec
-from sitl.cli_args import camera_preset
+from sitl.cli_args import add_governor_flag, camera_preset
 from sitl.sim.camera import in_frustum
 from sitl.sim.config import CIRCLE_RADIUS_M, DENSITIES, ScenarioConfig, SimConfig
 from sitl.sim.collision import distance_to_obstacles_m
@@ -373,9 +373,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--obstacle-clearance", type=float, metavar="M",
                         help="with --cell obstacles: keep obstacles M m from every start and goal instead of the "
                              f"scene's {ScenarioConfig.obstacle_clearance_m:g} m (does a pole beside the goal stall it?)")
-    parser.add_argument("--governor", action="store_true",
-                        help="fly the companion's speed governor (default settings) after the controller, as "
-                             "swarm_test --governor does")
+    add_governor_flag(parser)
     parser.add_argument("--json", type=Path, help="write the result with every collision and timeout here")
     args = parser.parse_args(argv)
     if args.episodes < 1 or args.n < 2:
