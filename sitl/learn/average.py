@@ -65,7 +65,7 @@ def average_stage(stage_dir: Path, out: Path, updates: list[int] | None = None) 
         selected = load_policy(stage_dir / "policy.pt", check_forward=False)
     except PolicyFileError as err:
         raise ValueError(f"{stage_dir}: needs the stage's exported policy.pt for its metadata ({err})") from None
-    states = [torch.load(stage_dir / "snapshots" / f"agent_{u}.pt", weights_only=True) for u in chosen]
+    states = [torch.load(stage_dir / "snapshots" / f"agent_{u}.pt", weights_only=True, map_location="cpu") for u in chosen]
     agent = make_agent(agent_cfg, make_sim_config(cfg, 1))
     agent.load_state_dict(average_state_dicts(states))
     agent.eval()

@@ -51,7 +51,7 @@ def snapshot_actor(cfg: TrainConfig, agent_cfg: AgentConfig, snapshot: Path) -> 
     """The factory of a snapshot's deterministic actor."""
     agent = make_agent(agent_cfg, make_sim_config(cfg, 1))
     try:
-        agent.load_state_dict(torch.load(snapshot, weights_only=True))
+        agent.load_state_dict(torch.load(snapshot, weights_only=True, map_location="cpu"))
     except Exception as err:  # noqa: BLE001 - a corrupt file or other networks: the same clear refusal
         raise ValueError(f"{snapshot}: not a snapshot of this run's networks ({str(err)[:200]})") from None
     agent.eval()

@@ -126,7 +126,7 @@ def snapshot_counters(snapshot: Path) -> dict:
     run_dir = snapshot.parent.parent
     try:
         rows = json.loads((snapshot.parent / "validation.json").read_text())
-        ckpt = torch.load(run_dir / "checkpoint.pt", weights_only=False)
+        ckpt = torch.load(run_dir / "checkpoint.pt", weights_only=False, map_location="cpu")
         row = next(r for r in rows if snapshot.name == f"agent_{r['updates']}.pt")
     except (OSError, ValueError, StopIteration) as err:
         raise ValueError(f"--init-from {snapshot}: not a snapshot of a run directory with its "
@@ -157,7 +157,7 @@ def earlier_history(path: Path, episodes: int) -> dict:
     """
     run_dir = path.parent if path.name == "checkpoint.pt" else path.parent.parent
     try:
-        history = torch.load(run_dir / "checkpoint.pt", weights_only=False)["history"]
+        history = torch.load(run_dir / "checkpoint.pt", weights_only=False, map_location="cpu")["history"]
     except Exception:  # noqa: BLE001 - the curve is a convenience; training goes on without it
         return {}
     keep = sum(1 for e in history.get("episode", []) if e <= episodes)
@@ -254,7 +254,7 @@ class Trainer:
         self.initial_stage: dict = {}
         if resume:
             try:
-                ckpt = torch.load(run_dir / "checkpoint.pt", weights_only=False)
+                ckpt = torch.load(run_dir / "checkpoint.pt", weights_only=False, map_location="cpu")
             except (OSError, RuntimeError, EOFError, pickle.UnpicklingError) as err:
                 raise ValueError(f"cannot resume: {run_dir / 'checkpoint.pt'} is not a readable checkpoint "
                                  f"({str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__})") from None
@@ -307,7 +307,8 @@ class Trainer:
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # torch.load's note on TorchScript archives: refused below
-                ckpt = torch.load(path, weights_only=False)
+                # on the CPU whatever device trained it (load_state_dict moves it to this agent's)
+                ckpt = torch.load(path, weights_only=False, map_location="cpu")
         except Exception as err:  # noqa: BLE001 - any unreadable file gets the same clear refusal
             raise ValueError(f"--init-from {path}: not a readable training checkpoint ({err})") from None
         if not isinstance(ckpt, dict):
@@ -437,7 +438,7 @@ class Trainer:
         if not index_path.exists():
             return None
         best = select_snapshot(json.loads(index_path.read_text()))
-        self.agent.load_state_dict(torch.load(self.run_dir / "snapshots" / f"agent_{best['updates']}.pt"))
+        self.agent.load_state_dict(torch.load(self.run_dir / "snapshots" / f"agent_{best['updates']}.pt", map_location="cpu"))
         how = "rescored" if "rescored" in best else "validation success"
         self.log(f"selected the snapshot at {best['updates']} updates ({how} {snapshot_score(best):.3f})")
         return best
