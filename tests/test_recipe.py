@@ -237,3 +237,17 @@ def test_a_stage_header_names_the_flags_that_replace_its_settings(tmp_path):
                    log=log).run()
     assert "command line" not in headers[0]
     assert "random scene" in headers[1] and "from the command line instead: scenario circle" in headers[1]
+
+
+def test_a_resume_elsewhere_rewrites_where_every_stage_computes(tmp_path):
+    """A recipe started on a GPU machine (--device cuda) continued on a CPU (--resume --device cpu)."""
+    from sitl.learn.cli import move_run
+
+    cfg, agent_cfg = tiny_configs(tmp_path)
+    for path in (tmp_path / "config.json", tmp_path / "stage1-first" / "config.json"):
+        path.parent.mkdir(exist_ok=True)
+        path.write_text(json.dumps({"train": {**asdict(cfg), "device": "cuda", "threads": 4}, "agent": asdict(agent_cfg)}))
+    move_run(tmp_path, {"device": "cpu"})
+    for path in (tmp_path / "config.json", tmp_path / "stage1-first" / "config.json"):
+        train = json.loads(path.read_text())["train"]
+        assert (train["device"], train["threads"], train["seed"]) == ("cpu", 4, cfg.seed)

@@ -269,10 +269,23 @@ def test_run_directory_is_never_overwritten_and_sigkill_resumes(tmp_path):
     # Resume with a finite budget: edit the saved config's budget to end soon after the checkpoint.
     config = json.loads((run_dir / "config.json").read_text())
     config["train"]["total_updates"] = saved["updates"] + 20
+    moved = not torch.cuda.is_available()  # then pretend the run was started on a GPU machine
+    if moved:
+        config["train"]["device"] = "cuda"
     (run_dir / "config.json").write_text(json.dumps(config))
-    resumed = subprocess.run([sys.executable, "-m", "sitl.train", "--resume", str(run_dir)], capture_output=True,
-                             text=True, env=_env(), cwd=tmp_path, timeout=300)
+    resume = [sys.executable, "-m", "sitl.train", "--resume", str(run_dir)]
+    if moved:
+        refused = subprocess.run(resume, capture_output=True, text=True, env=_env(), cwd=tmp_path, timeout=120)
+        assert refused.returncode == 2 and "Traceback" not in refused.stderr
+        assert "give --device cpu to continue it here" in refused.stderr.strip().splitlines()[-1]
+        other = subprocess.run([*resume, "--seed", "3"], capture_output=True, text=True, env=_env(), cwd=tmp_path)
+        assert other.returncode == 2 and "not --seed" in other.stderr
+        resume += ["--device", "cpu", "--threads", "1"]
+    resumed = subprocess.run(resume, capture_output=True, text=True, env=_env(), cwd=tmp_path, timeout=300)
     assert resumed.returncode == 0, resumed.stderr
+    if moved:  # where it computes is kept for later resumes too
+        train = json.loads((run_dir / "config.json").read_text())["train"]
+        assert (train["device"], train["threads"]) == ("cpu", 1)
     assert f"resumed from {ckpt}: {saved['updates']} updates" in resumed.stderr
     final = json.loads((run_dir / "final_eval.json").read_text())
     assert final["updates"] == saved["updates"] + 20

@@ -39,7 +39,7 @@ from pathlib import Path
 
 from sitl.cli_args import ArgumentParser, finite_float, integer, positive_float, positive_floats
 from sitl.learn.agent import AgentConfig
-from sitl.learn.config import PRESETS, TrainConfig, resolve_configs
+from sitl.learn.config import PRESETS, WHERE_SETTINGS, TrainConfig, resolve_configs
 from sitl.learn.recipe import RECIPE_FILE, Recipe, scaled_stages
 from sitl.learn.trainer import make_trainer
 
@@ -75,7 +75,9 @@ def build_parser(preset: str = TrainConfig.preset) -> argparse.ArgumentParser:
     train_defaults, agent_defaults = resolve_configs({"preset": preset}, {})
     parser = ArgumentParser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--resume", metavar="RUN_DIR", default=None,
-                        help="continue the run (or recipe) in RUN_DIR from its checkpoint")
+                        help="continue the run (or recipe) in RUN_DIR from its checkpoint, with the settings "
+                             "it was started with; --device and --threads may be given to continue it on "
+                             "another machine (e.g. trained on cuda, continued on a CPU)")
     stages = PRESETS[preset].get("stages")
     if stages:
         lines = [f"  stage {i + 1} '{st.name}': {st.description}; "
@@ -129,6 +131,24 @@ def default_run_dir(cfg: TrainConfig) -> Path:
     return Path("runs") / f"{cfg.method}-{cfg.scenario}-{cfg.density}-s{cfg.seed}-{stamp}"
 
 
+def move_run(run_dir: Path, where: dict) -> None:
+    """Rewrite the :data:`WHERE_SETTINGS` in ``where`` into the run's config.json and, for a recipe, each
+    stage's, so that this resume and every later one computes there."""
+    if not where:
+        return
+    for path in [run_dir / "config.json", *sorted(run_dir.glob("stage*/config.json"))]:
+        saved = json.loads(path.read_text())
+        saved["train"].update(where)
+        path.write_text(json.dumps(saved, indent=2))
+
+
+def _resume_error(err: Exception) -> str:
+    """Why a run's config.json could not be taken up again."""
+    if isinstance(err, ValueError) and "device" in str(err):  # e.g. trained on cuda, resumed on a laptop
+        return f"{err} (give --device cpu to continue it here)"
+    return f"its config.json is missing or invalid ({err})"
+
+
 def _run_recipe(cfg: TrainConfig, agent_cfg: AgentConfig, run_dir: Path, scale: float | None,
                 explicit: frozenset[str], stage_scales: list[float] | None = None) -> int:
     """Run (or resume: ``scale`` None) the recipe of ``cfg.preset`` in ``run_dir``."""
@@ -151,11 +171,18 @@ def main(argv: list[str] | None = None) -> int:
     cfg, agent_cfg, resume, recipe_args = parse_args(argv)
     if resume:
         run_dir = Path(resume)
+        others = sorted(recipe_args["explicit"] - set(WHERE_SETTINGS))
+        if others:
+            print(f"error: --resume continues {run_dir} with the settings in its config.json; only "
+                  f"{' and '.join('--' + n for n in WHERE_SETTINGS)} may be given with it, not "
+                  f"{', '.join('--' + n.replace('_', '-') for n in others)}", file=sys.stderr)
+            return 2
         try:
+            move_run(run_dir, {name: getattr(cfg, name) for name in WHERE_SETTINGS if name in recipe_args["explicit"]})
             saved = json.loads((run_dir / "config.json").read_text())
             cfg, agent_cfg = TrainConfig(**saved["train"]), AgentConfig(**saved["agent"])
         except (OSError, ValueError, KeyError, TypeError) as err:
-            print(f"error: cannot resume {run_dir}: its config.json is missing or invalid ({err})", file=sys.stderr)
+            print(f"error: cannot resume {run_dir}: {_resume_error(err)}", file=sys.stderr)
             return 2
         if "stages" in PRESETS[cfg.preset]:
             return _run_recipe(cfg, agent_cfg, run_dir, None, frozenset())  # each stage resumes from its checkpoint

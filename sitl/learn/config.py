@@ -245,6 +245,10 @@ TRAIN_INT_RANGES = (
     ("teacher_bc_updates", 0, 10**9),
 )
 
+#: Settings that say where a run computes, not what it learns: the only ones `--resume` may change
+#: (a run started on a GPU machine can be continued on a laptop).
+WHERE_SETTINGS = ("device", "threads")
+
 #: The recipe that trains the bundled models/policy.pt (models/README.md); the training benchmarks' default.
 BUNDLE_PRESET = "flown-fast"
 
