@@ -30,7 +30,7 @@ from sitl.learn.config import make_sim_config
 from sitl.learn.export import export_policy
 from sitl.learn.rescore import load_run
 from sitl.learn.sweep import add_policy_eval_options, eval_cells, evaluation_settings, fly_policy_cells
-from sitl.learn.trainer import make_agent
+from sitl.learn.trainer import load_training_file, make_agent
 
 
 def average_state_dicts(states: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
@@ -65,7 +65,7 @@ def average_stage(stage_dir: Path, out: Path, updates: list[int] | None = None) 
         selected = load_policy(stage_dir / "policy.pt", check_forward=False)
     except PolicyFileError as err:
         raise ValueError(f"{stage_dir}: needs the stage's exported policy.pt for its metadata ({err})") from None
-    states = [torch.load(stage_dir / "snapshots" / f"agent_{u}.pt", weights_only=True, map_location="cpu") for u in chosen]
+    states = [load_training_file(stage_dir / "snapshots" / f"agent_{u}.pt") for u in chosen]
     agent = make_agent(agent_cfg, make_sim_config(cfg, 1))
     agent.load_state_dict(average_state_dicts(states))
     agent.eval()

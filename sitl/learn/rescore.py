@@ -30,7 +30,8 @@ import torch
 from sitl.cli_args import ArgumentParser, int_list
 from sitl.learn.agent import AgentConfig
 from sitl.learn.config import TrainConfig, make_sim_config
-from sitl.learn.trainer import agent_actor, evaluate_scenario, make_agent, select_snapshot, train_governor
+from sitl.learn.trainer import (agent_actor, evaluate_scenario, load_training_file, make_agent, select_snapshot,
+                                train_governor)
 from sitl.sim.episodes import ActorFactory
 from sitl.sim.scenarios import VALIDATION_SEED_OFFSET
 
@@ -51,7 +52,7 @@ def snapshot_actor(cfg: TrainConfig, agent_cfg: AgentConfig, snapshot: Path) -> 
     """The factory of a snapshot's deterministic actor."""
     agent = make_agent(agent_cfg, make_sim_config(cfg, 1))
     try:
-        agent.load_state_dict(torch.load(snapshot, weights_only=True, map_location="cpu"))
+        agent.load_state_dict(load_training_file(snapshot))
     except Exception as err:  # noqa: BLE001 - a corrupt file or other networks: the same clear refusal
         raise ValueError(f"{snapshot}: not a snapshot of this run's networks ({str(err)[:200]})") from None
     agent.eval()

@@ -116,6 +116,13 @@ def add_counters(counters: dict, earlier: dict) -> dict:
     return {n: counters[n] + earlier.get(n, 0) for n in STAGE_COUNTERS}
 
 
+def load_training_file(path: Path, weights_only: bool = True):
+    """A checkpoint or snapshot of training, its tensors on the CPU whatever device wrote it, so that a run
+    started with ``--device cuda`` goes on, is rescored and averaged on a CPU machine (``load_state_dict``
+    then moves the tensors to the agent's device)."""
+    return torch.load(path, weights_only=weights_only, map_location="cpu")
+
+
 def snapshot_counters(snapshot: Path) -> dict:
     """Training that went into a validated snapshot ``RUN/snapshots/agent_<updates>.pt``.
 
@@ -126,7 +133,7 @@ def snapshot_counters(snapshot: Path) -> dict:
     run_dir = snapshot.parent.parent
     try:
         rows = json.loads((snapshot.parent / "validation.json").read_text())
-        ckpt = torch.load(run_dir / "checkpoint.pt", weights_only=False, map_location="cpu")
+        ckpt = load_training_file(run_dir / "checkpoint.pt", weights_only=False)
         row = next(r for r in rows if snapshot.name == f"agent_{r['updates']}.pt")
     except (OSError, ValueError, StopIteration) as err:
         raise ValueError(f"--init-from {snapshot}: not a snapshot of a run directory with its "
@@ -157,7 +164,7 @@ def earlier_history(path: Path, episodes: int) -> dict:
     """
     run_dir = path.parent if path.name == "checkpoint.pt" else path.parent.parent
     try:
-        history = torch.load(run_dir / "checkpoint.pt", weights_only=False, map_location="cpu")["history"]
+        history = load_training_file(run_dir / "checkpoint.pt", weights_only=False)["history"]
     except Exception:  # noqa: BLE001 - the curve is a convenience; training goes on without it
         return {}
     keep = sum(1 for e in history.get("episode", []) if e <= episodes)
@@ -254,7 +261,7 @@ class Trainer:
         self.initial_stage: dict = {}
         if resume:
             try:
-                ckpt = torch.load(run_dir / "checkpoint.pt", weights_only=False, map_location="cpu")
+                ckpt = load_training_file(run_dir / "checkpoint.pt", weights_only=False)
             except (OSError, RuntimeError, EOFError, pickle.UnpicklingError) as err:
                 raise ValueError(f"cannot resume: {run_dir / 'checkpoint.pt'} is not a readable checkpoint "
                                  f"({str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__})") from None
@@ -307,8 +314,7 @@ class Trainer:
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # torch.load's note on TorchScript archives: refused below
-                # on the CPU whatever device trained it (load_state_dict moves it to this agent's)
-                ckpt = torch.load(path, weights_only=False, map_location="cpu")
+                ckpt = load_training_file(path, weights_only=False)
         except Exception as err:  # noqa: BLE001 - any unreadable file gets the same clear refusal
             raise ValueError(f"--init-from {path}: not a readable training checkpoint ({err})") from None
         if not isinstance(ckpt, dict):
@@ -438,7 +444,7 @@ class Trainer:
         if not index_path.exists():
             return None
         best = select_snapshot(json.loads(index_path.read_text()))
-        self.agent.load_state_dict(torch.load(self.run_dir / "snapshots" / f"agent_{best['updates']}.pt", map_location="cpu"))
+        self.agent.load_state_dict(load_training_file(self.run_dir / "snapshots" / f"agent_{best['updates']}.pt"))
         how = "rescored" if "rescored" in best else "validation success"
         self.log(f"selected the snapshot at {best['updates']} updates ({how} {snapshot_score(best):.3f})")
         return best
