@@ -95,14 +95,15 @@ def update_rate(agent: SacAeAgent, seconds: float, batch_size: int, warmup_updat
         privileged = {"privileged": rng.normal(size=(64, extra)), "next_privileged": rng.normal(size=(64, extra))}
         buf.add(agents, rng.normal(size=(64, STATE_DIM)), rng.uniform(-1, 1, (64, action_dim)), rng.normal(size=64),
                 rng.uniform(0, 20, (64, height, width)), rng.normal(size=(64, STATE_DIM)), np.zeros(64, bool),
-                **(privileged if extra else {}))
+                rng.uniform(-1, 1, (64, action_dim)), **(privileged if extra else {}))  # a teacher's labels too
+    labelled = agent.config.method == "distill"  # a distilled student learns from the teacher's labels only
     for _ in range(warmup_updates):
-        agent.update(buf.sample(batch_size, agent.device))
+        agent.update(buf.sample(batch_size, agent.device, with_teacher=labelled))
     synchronize = torch.cuda.synchronize if agent.device.type == "cuda" else (lambda: None)
     synchronize()
     count, started = 0, time.perf_counter()
     while time.perf_counter() - started < seconds:
-        agent.update(buf.sample(batch_size, agent.device))
+        agent.update(buf.sample(batch_size, agent.device, with_teacher=labelled))
         count += 1
     synchronize()  # a GPU's queued work counts too
     return count / (time.perf_counter() - started)

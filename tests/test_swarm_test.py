@@ -167,6 +167,38 @@ def test_orca_fov_avoids_only_the_uavs_its_camera_covers():
     assert np.linalg.norm(behind_fov[2] - pref[2]) > 0.01  # UAV 2 sees UAV 0 ahead and (expecting help) slows a little
 
 
+def _orca_pole_run(see_obstacles: bool) -> tuple[str, float]:
+    """One UAV flying ORCA to its goal 10 m north, through a 0.2 m pole: its outcome and closest approach."""
+    from companion.spec import REALSENSE_D435
+    from sitl.eval.orca import orca_actor
+    from sitl.sim.config import SimConfig
+    from sitl.sim.env import SwarmEnv
+
+    cfg = SimConfig(num_uavs=1, camera=REALSENSE_D435, max_episode_steps=300,
+                    scenario=ScenarioConfig(name="random", density=0.01, min_goal_distance_m=0.0))
+    env = SwarmEnv(cfg, seed=0, cylinders=np.array([[[0.0, 0.05, 0.2, -30.0, 0.0]]]))
+    env.reset()
+    env.dynamics.reset(np.array([0]), np.array([[-5.0, 0.0, -8.0]]), np.array([0.0]))
+    env.goal_ned[0] = [5.0, 0.0, -8.0]
+    act = orca_actor(env, see_obstacles=see_obstacles)
+    obs, *_ = env.step(np.zeros((1, 3), dtype=np.float32))  # an observation from the placed start
+    closest = math.inf
+    for _ in range(300):
+        obs, _, term, trunc, _ = env.step(act(obs))
+        closest = min(closest, float(np.hypot(env.dynamics.pos_ned[0, 0], env.dynamics.pos_ned[0, 1] - 0.05)))
+        if term[0] or trunc[0]:
+            break
+    return env.finish()[0].outcome, closest
+
+
+@needs_rvo
+def test_orca_that_sees_obstacles_flies_round_a_pole_the_plain_one_hits():
+    """The distill method's teacher: the UAV's nearest obstacle point stands in RVO2-3D as a static agent."""
+    assert _orca_pole_run(see_obstacles=False)[0] == "collision_obstacle"
+    outcome, closest = _orca_pole_run(see_obstacles=True)
+    assert outcome == "arrived" and closest > 0.2 + 0.3  # never touched: the pole's radius plus R
+
+
 @needs_rvo
 def test_orca_solves_the_circle_of_eight_without_collision():
     settings = EvalSettings(scenario=ScenarioConfig(name="circle"), num_uavs=8, episodes=4, seed=1)

@@ -464,3 +464,59 @@ def test_trainer_labels_with_privileged_orca_outside_obstacle_worlds_and_the_wei
     assert 0 < valid.mean() < 1  # obstacle worlds were left out, the others labelled
     labels = buf.teacher_action[:buf.size][valid > 0]
     assert np.abs(labels).max() <= 1.0 and labels[:, 0].max() > 0  # unit actions; ORCA flies forward
+
+
+def test_imitation_update_moves_the_actors_mean_and_its_convolutions_towards_the_teacher():
+    """The distill method's update: the actor's mean action converges on the teacher's labels, and
+    the convolutions (for SAC+AE the critic's alone) learn from that loss."""
+    cam = CameraSpec(width=16, height=16)
+    rng = np.random.default_rng(0)
+    buf = FrameReplayBuffer(64, 4, 3, 16, 16, 6, 3)
+    buf.start_episodes(np.arange(4), rng.uniform(0, 20, (4, 16, 16)))
+    target = np.array([0.6, -0.4, 0.3], dtype=np.float32)
+    for _ in range(16):
+        buf.add(np.arange(4), rng.normal(size=(4, 6)), rng.uniform(-1, 1, (4, 3)), rng.normal(size=4),
+                rng.uniform(0, 20, (4, 16, 16)), rng.normal(size=(4, 6)), np.zeros(4, bool), np.tile(target, (4, 1)))
+    batch = buf.sample(64, torch.device("cpu"), with_teacher=True)
+    torch.manual_seed(0)
+    agent = SacAeAgent(AgentConfig(method="distill", hidden_dim=32), cam, DEFAULT_ACTION_SPEC)
+    convs = [p.detach().clone() for p in agent.actor.encoder.convs.parameters()]
+    critic_q = [p.detach().clone() for p in agent.critic.q1.parameters()]
+    pixels, state = agent._inputs(batch["depth"], batch["state"])
+
+    def distance() -> float:
+        with torch.no_grad():
+            return float((agent.actor.deterministic(pixels, state) - torch.from_numpy(target)).pow(2).sum(-1).mean())
+
+    before = distance()
+    for _ in range(60):
+        info = agent.update(batch)
+    assert set(info) == {"losses/imitation"} and distance() < 0.05 * before
+    assert any(not torch.equal(a, b) for a, b in zip(convs, agent.actor.encoder.convs.parameters()))
+    assert all(torch.equal(a, b) for a, b in zip(critic_q, agent.critic.q1.parameters()))  # no critic is trained
+
+
+def test_distill_trainer_labels_every_world_and_hands_over_from_teacher_to_student(tmp_path):
+    """DAgger: obstacle worlds are labelled too (the teacher sees the poles), and beta falls from 1 to
+    0 over dagger_beta_updates, after which the UAVs fly the student's deterministic commands."""
+    from sitl.learn.config import PRESETS, resolve_configs
+    from sitl.learn.trainer import make_trainer
+
+    cfg, agent_cfg = resolve_configs(
+        {**PRESETS["flown"]["train"], "preset": "flown", "method": "distill", "scenario": "mixed",
+         "circle_fraction": 0.0, "obstacle_fraction": 1.0, "num_worlds": 4, "total_updates": 40, "init_steps": 64,
+         "batch_size": 16, "eval_every_updates": 0, "final_eval_episodes": 0, "dagger_beta_updates": 20},
+        {"hidden_dim": 32})
+    trainer = make_trainer(cfg, agent_cfg, tmp_path)
+    assert trainer.dagger_beta() == 1.0 and trainer.teacher_weight() == 1.0
+    trainer.run()
+    assert trainer.dagger_beta() == 0.0
+    buf, env = trainer.buffer, trainer.env
+    assert env.world_has_obstacles.all()  # every episode among obstacles...
+    assert buf.teacher_valid[:buf.size].min() == 1.0  # ...and every transition labelled
+    labels = buf.teacher_action[:buf.size]
+    assert np.abs(labels).max() <= 1.0 and labels[:, 0].max() > 0  # unit actions; ORCA flies forward
+    # With beta at 0 the replay's newest actions are the student's own, not the teacher's.
+    newest = (buf._next - 1 - np.arange(env.num_agents)) % buf.capacity
+    assert not np.allclose(buf.action[newest], buf.teacher_action[newest], atol=1e-3)
+    assert trainer.teacher.see_obstacles

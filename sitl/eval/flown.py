@@ -80,6 +80,8 @@ def _cell_key(cell: FlownCell, method: Method) -> dict:
            "policy_sha256": file_digest(method.path) if method.path else None}
     if method.governor is not None:  # only then: the keys of stored ungoverned cells stay as they were
         key["governor"] = method.governor.to_dict()
+    if "orca" in method.info():  # ORCA's settings, whether it sees the obstacles included (since 2026-11-27)
+        key["orca"] = method.info()["orca"]
     return key
 
 

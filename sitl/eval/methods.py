@@ -56,7 +56,7 @@ class Method:
         if self.kind == "baseline" and self.label in ORCA_BASELINES:
             from sitl.eval.orca import OrcaParams
 
-            out["orca"] = dataclasses.asdict(OrcaParams())
+            out["orca"] = dataclasses.asdict(OrcaParams()) | {"sees_obstacles": self.label == "orca"}
         return out
 
     def make_actor(self, env: SwarmEnv) -> Actor:
@@ -87,7 +87,8 @@ class Method:
         if self.kind == "baseline" and name in ORCA_BASELINES:
             from sitl.eval.orca import orca_actor
 
-            return orca_actor(env, camera_limited=name == "orca-fov")
+            # Privileged ORCA knows the obstacles too; the camera-limited one only the UAVs it sees.
+            return orca_actor(env, camera_limited=name == "orca-fov", see_obstacles=name == "orca")
         return policy_actor(self._policy)(env)
 
 

@@ -13,6 +13,11 @@ the policy's command space (:func:`velocity_to_action`) and the gap is absorbed 
 radius margin above the collision radius R, as a real deployment of ORCA on multicopters
 would do.
 
+RVO2-3D has no static obstacles; with ``see_obstacles`` (``--policy orca``, and the ``distill``
+method's teacher) each UAV's nearest point on a box or pole stands in its world as a static agent of
+radius ``obstacle_point_radius_m``, which every UAV avoids. Since a static agent never does its half of
+a reciprocal avoidance, the point is inflated rather than trusted to share the work.
+
 ``orca-fov`` (:func:`orca_actor` with ``camera_limited=True``) is the same ORCA limited to what the UAV's own camera
 covers: each UAV avoids only the UAVs whose centres are inside its camera frustum (field of
 view and range, :mod:`sitl.eval.visibility`) at that step, and the others no longer
@@ -49,6 +54,10 @@ class OrcaParams:
     max_speed_m_s: float = 2.0  # ORCA's speed sphere = the forward speed limit
     goal_slowdown_s: float = 1.0  # preferred speed = min(max_speed, distance / this): no overshoot
     yaw_gain: float = 2.0  # yaw rate = gain x bearing of the new velocity (rad/s per rad)
+    #: ``see_obstacles``: the radius of the static agent standing at each UAV's nearest obstacle point.
+    #: ORCA shares an avoidance half and half, and a static agent never does its half, so the point
+    #: is inflated instead: the UAV then keeps about R + margin + this / 2 from the surface.
+    obstacle_point_radius_m: float = 0.4
 
 
 def _import_rvo():
@@ -110,10 +119,15 @@ class OrcaController:
 
     def __init__(self, num_worlds: int, uavs_per_world: int, collision_radius_m: float,
                  control_period_s: float, params: OrcaParams = OrcaParams(),
-                 spec: ActionSpec = DEFAULT_ACTION_SPEC, camera: CameraSpec | None = None) -> None:
-        """``camera``: avoid only the UAVs inside this camera's frustum (``orca-fov``); None: all of them."""
+                 spec: ActionSpec = DEFAULT_ACTION_SPEC, camera: CameraSpec | None = None,
+                 see_obstacles: bool = False) -> None:
+        """``camera``: avoid only the UAVs inside this camera's frustum (``orca-fov``); None: all of them.
+        ``see_obstacles``: also avoid the static obstacles (boxes, poles), each UAV's nearest obstacle
+        point standing in its world as a static agent (not with ``camera``)."""
+        if see_obstacles and camera is not None:
+            raise ValueError("ORCA sees the obstacles only with full knowledge (camera=None)")
         rvo = _import_rvo()
-        self.params, self.spec, self.camera = params, spec, camera
+        self.params, self.spec, self.camera, self.see_obstacles = params, spec, camera, see_obstacles
         self.n = uavs_per_world
         radius = collision_radius_m + params.radius_margin_m
         self._sims = []
@@ -122,14 +136,19 @@ class OrcaController:
                                      params.time_horizon_s, radius, params.max_speed_m_s)
             for _ in range(uavs_per_world):
                 sim.addAgent((0.0, 0.0, 0.0))
+            if see_obstacles:  # agents n..2n-1: the nearest obstacle point of UAV 0..n-1
+                for _ in range(uavs_per_world):
+                    sim.setAgentRadius(sim.addAgent((0.0, 0.0, 0.0)), params.obstacle_point_radius_m)
             self._sims.append(sim)
 
     @classmethod
-    def for_env(cls, env, params: OrcaParams = OrcaParams(), camera_limited: bool = False) -> "OrcaController":
-        """ORCA for ``env``; ``camera_limited``: each UAV avoids only what ``env``'s camera covers (``orca-fov``)."""
+    def for_env(cls, env, params: OrcaParams = OrcaParams(), camera_limited: bool = False,
+                see_obstacles: bool = False) -> "OrcaController":
+        """ORCA for ``env``; ``camera_limited``: each UAV avoids only what ``env``'s camera covers (``orca-fov``);
+        ``see_obstacles``: it avoids the static obstacles too."""
         cfg = env.config
         return cls(env.num_worlds, env.uavs_per_world, cfg.collision_radius_m, cfg.control_period_s, params,
-                   env.action_spec, cfg.camera if camera_limited else None)
+                   env.action_spec, cfg.camera if camera_limited else None, see_obstacles)
 
     def _load(self, sim, b: int, pos_ned: np.ndarray, vel: np.ndarray, pref: np.ndarray, known: np.ndarray) -> None:
         """World ``b``'s UAVs into its simulator; those not ``known`` (gone, or out of view) parked far away."""
@@ -143,12 +162,27 @@ class OrcaController:
                 sim.setAgentVelocity(i, (0.0, 0.0, 0.0))
             sim.setAgentPrefVelocity(i, tuple(pref[r]))
 
+    def _load_obstacle_points(self, sim, pos_ned: np.ndarray, points_ned: np.ndarray, acting: np.ndarray) -> None:
+        """Agents n + i: UAV i's nearest obstacle point as a static agent where it is within ORCA's
+        neighbourhood (every UAV avoids it: it is a point of an obstacle); else parked far away."""
+        gap = np.linalg.norm(points_ned - pos_ned, axis=1)  # inf without obstacles
+        for i in range(self.n):
+            if acting[i] and gap[i] <= self.params.neighbor_dist_m:
+                sim.setAgentPosition(self.n + i, tuple(points_ned[i]))
+            else:
+                sim.setAgentPosition(self.n + i, (self._PARK_M + 1000.0 * i, -self._PARK_M, 0.0))
+            sim.setAgentVelocity(self.n + i, (0.0, 0.0, 0.0))
+            sim.setAgentPrefVelocity(self.n + i, (0.0, 0.0, 0.0))
+
     def new_velocities(self, pos_ned: np.ndarray, vel_ned: np.ndarray, goal_ned: np.ndarray,
-                       acting: np.ndarray, present: np.ndarray, yaw_rad: np.ndarray | None = None) -> np.ndarray:
+                       acting: np.ndarray, present: np.ndarray, yaw_rad: np.ndarray | None = None,
+                       obstacle_points_ned: np.ndarray | None = None) -> np.ndarray:
         """ORCA's collision-free velocities [M, 3] (NED) for the acting UAVs (zero elsewhere).
 
         With a ``camera`` each acting UAV is solved on its own, knowing only itself and the
         present UAVs inside its camera frustum (``yaw_rad`` [M] gives the headings).
+        ``obstacle_points_ned`` [M, 3] (``see_obstacles``): each UAV's nearest obstacle point, ``inf``
+        where its world has none.
         """
         pref = preferred_velocity(pos_ned, goal_ned, self.params, self.spec)
         pref[~acting] = 0.0
@@ -163,6 +197,8 @@ class OrcaController:
                 continue
             if self.camera is None:
                 self._load(sim, b, pos_ned, vel, pref, present[rows])
+                if self.see_obstacles:
+                    self._load_obstacle_points(sim, pos_ned[rows], obstacle_points_ned[rows], acting[rows])
                 sim.doStep()  # computes the new velocities (it also moves its own copies; we overwrite them)
                 for i in np.flatnonzero(acting[rows]):
                     out[b * n + i] = sim.getAgentVelocity(int(i))
@@ -180,12 +216,20 @@ class OrcaController:
     def act_env(self, env) -> np.ndarray:
         """Actions [M, 3] for every UAV of ``env`` from its true state."""
         d = env.dynamics
-        vel = self.new_velocities(d.pos_ned, d.vel_ned, env.goal_ned, env.acting, env.present, d.yaw_rad)
+        points = None
+        if self.see_obstacles:
+            from sitl.learn.privileged import nearest_obstacle_points
+
+            worlds = env.num_worlds
+            points = nearest_obstacle_points(d.pos_ned.reshape(worlds, self.n, 3), env.boxes,
+                                             env.cylinders).reshape(-1, 3)
+        vel = self.new_velocities(d.pos_ned, d.vel_ned, env.goal_ned, env.acting, env.present, d.yaw_rad, points)
         return velocity_to_action(vel, d.yaw_rad, self.params, self.spec)
 
 
-def orca_actor(env, params: OrcaParams = OrcaParams(), camera_limited: bool = False):
+def orca_actor(env, params: OrcaParams = OrcaParams(), camera_limited: bool = False, see_obstacles: bool = False):
     """ORCA as an :data:`sitl.sim.episodes.Actor` for ``env`` (an ``ActorFactory``): it reads the true states,
-    of every UAV (privileged) or, ``camera_limited``, of those in each UAV's camera frustum (``orca-fov``)."""
-    controller = OrcaController.for_env(env, params, camera_limited)
+    of every UAV (privileged) or, ``camera_limited``, of those in each UAV's camera frustum (``orca-fov``);
+    ``see_obstacles``: and the obstacles."""
+    controller = OrcaController.for_env(env, params, camera_limited, see_obstacles)
     return lambda obs: controller.act_env(env)

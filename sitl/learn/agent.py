@@ -10,6 +10,12 @@ Methods (``AgentConfig.method``):
   2020): cheaper per update than the decoder, and reported as more sample-efficient.
 * ``vae`` — RL+VAE: the encoder is a VAE trained beforehand on depth images and frozen; SAC
   learns on its latent (see :mod:`sitl.learn.vae`).
+* ``distill`` — not reinforcement learning: the same actor (encoder and MLP, the same policy
+  file) learns by regression on a privileged teacher's actions, DAgger-style (Ross et al. 2011):
+  the trainer labels every transition with what obstacle-aware ORCA, which knows every UAV's and
+  obstacle's true position, would command (:mod:`sitl.eval.orca`), and the UAVs fly a mixture of
+  teacher and student that hands over to the student (``TrainConfig.dagger_beta_updates``).
+  :meth:`SacAeAgent.update_imitation`; the critic is built but never trained.
 
 The update follows the equations: :meth:`SacAeAgent.update_critic` (eqs. 5-6),
 :meth:`SacAeAgent.update_actor_and_alpha` (eq. 7), :meth:`SacAeAgent.update_decoder` (eq. 8).
@@ -30,7 +36,7 @@ from companion.spec import ActionSpec, CameraSpec
 from sitl.learn.networks import STATE_FEATURES, Actor, Critic, Decoder, DepthNormalizer, Encoder, StateFeatures, weight_init
 from sitl.learn.privileged import PRIVILEGED_DIM
 
-METHODS = ("sac_ae", "cnn", "drq", "vae")
+METHODS = ("sac_ae", "cnn", "drq", "vae", "distill")
 
 
 @dataclass(frozen=True)
@@ -156,7 +162,10 @@ class SacAeAgent(nn.Module):
         self.to(self.device)
 
         trainable_encoder = config.method != "vae"
-        actor_params = [p for n, p in self.actor.named_parameters() if not n.startswith("encoder.convs")]
+        # The actor's convolutions are the critic's and learn from the critic (and decoder) only; a
+        # distilled student has no critic to learn them from, so its actor loss trains them.
+        actor_params = [p for n, p in self.actor.named_parameters()
+                        if config.method == "distill" or not n.startswith("encoder.convs")]
         self.actor_optimizer = torch.optim.Adam([p for p in actor_params if p.requires_grad],
                                                 lr=config.actor_lr, betas=(config.actor_beta, 0.999))
         self.critic_optimizer = torch.optim.Adam([p for p in self.critic.parameters() if p.requires_grad],
@@ -265,6 +274,17 @@ class SacAeAgent(nn.Module):
         return info | {"losses/actor": actor_loss.item(), "losses/alpha": alpha_loss.item(),
                        "values/alpha": self.alpha.item(), "values/entropy": -log_prob.mean().item()}
 
+    def update_imitation(self, pixels, state, teacher_action, teacher_valid) -> dict:
+        """``distill``: regress the actor's mean action ``tanh(mu)`` (what the exported policy flies) on
+        the teacher's unit action where ``teacher_valid``; the encoder learns from this loss alone."""
+        mean_action = torch.tanh(self.actor.distribution(pixels, state)[0])
+        per_sample = (mean_action - teacher_action).pow(2).sum(-1, keepdim=True)
+        loss = (per_sample * teacher_valid).sum() / teacher_valid.sum().clamp(min=1.0)
+        self.actor_optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.actor_optimizer.step()
+        return {"losses/imitation": loss.item()}
+
     def update_decoder(self, pixels) -> dict:
         """Eq. 8 (RAE): reconstruction + lambda_z |z|^2; lambda_phi |phi|^2 is the decoder's weight decay."""
         latent = self.critic.encoder(pixels)
@@ -295,6 +315,9 @@ class SacAeAgent(nn.Module):
         :meth:`update_actor_and_alpha`; the batch then carries ``teacher_action``/``teacher_valid``)."""
         cfg = self.config
         pixels, state = self._inputs(batch["depth"], batch["state"])
+        if cfg.method == "distill":
+            self.updates += 1
+            return self.update_imitation(pixels, state, batch["teacher_action"], batch["teacher_valid"])
         next_pixels, next_state = self._inputs(batch["next_depth"], batch["next_state"])
         if cfg.method == "drq":
             pixels, next_pixels = random_shift(pixels, cfg.drq_pad), random_shift(next_pixels, cfg.drq_pad)

@@ -141,6 +141,9 @@ class TrainConfig:
                                       "SAC+AE (docs/training.md 'Teacher-guided SAC+AE')")
     teacher_bc_updates: int = _param(0, "the teacher's weight falls linearly to 0 over this many updates, counted "
                                         "from the first stage of a recipe (0: it stays constant)")
+    dagger_beta_updates: int = _param(4_000, "distill method: the share of UAVs flying the teacher's command instead "
+                                             "of the student's falls linearly from 1 to 0 over this many updates, "
+                                             "counted from the first stage of a recipe (DAgger's beta)")
     init_from: str = _param("", "start from the networks of another run (a curriculum stage): its directory or "
                                 "checkpoint.pt (optimiser states carried over) or a validated snapshot "
                                 "snapshots/agent_<updates>.pt; its updates and wall time count in this run's provenance")
@@ -208,6 +211,8 @@ class TrainConfig:
             raise ValueError(f"corridor_speed_reward must be in [-10, 0], got {self.corridor_speed_reward}")
         if not 0.0 <= self.teacher_bc_weight <= 100.0:
             raise ValueError(f"teacher_bc_weight must be in [0, 100], got {self.teacher_bc_weight}")
+        if self.method == "distill" and self.teacher_bc_weight > 0:
+            raise ValueError("teacher_bc_weight is SAC's behaviour-cloning term; the distill method is all teacher already")
         if not 0.0 < self.checkpoint_every_s < math.inf:
             raise ValueError(f"checkpoint_every_s must be a finite number > 0, got {self.checkpoint_every_s}")
         try:
@@ -242,7 +247,7 @@ TRAIN_INT_RANGES = (
     ("total_updates", 0, 10**9), ("updates_per_episode", 0, 1_000_000), ("init_steps", 0, 10**9),
     ("eval_every_updates", 0, 10**9), ("eval_episodes", 1, 1_000_000), ("final_eval_episodes", 0, 1_000_000),
     ("seed", 0, 2**32 - 1), ("threads", 1, MAX_THREADS), ("vae_images", 1, 10_000_000), ("vae_epochs", 1, 100_000),
-    ("teacher_bc_updates", 0, 10**9),
+    ("teacher_bc_updates", 0, 10**9), ("dagger_beta_updates", 0, 10**9),
 )
 
 #: Settings that say where a run computes, not what it learns: the only ones `--resume` may change

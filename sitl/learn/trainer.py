@@ -248,15 +248,18 @@ class Trainer:
         from torch.utils.tensorboard import SummaryWriter
 
         self.writer = SummaryWriter(str(run_dir / "tb"))
-        #: teacher-guided SAC+AE (``teacher_bc_weight`` > 0): privileged ORCA labels the actions
+        #: privileged ORCA labels the actions: teacher-guided SAC+AE (``teacher_bc_weight`` > 0; ORCA
+        #: blind to obstacles, as it was probed) or the ``distill`` method (ORCA that sees them)
         self.teacher = None
-        if cfg.teacher_bc_weight > 0:
+        self.distill = agent_cfg.method == "distill"
+        if cfg.teacher_bc_weight > 0 or self.distill:
             from sitl.eval.orca import OrcaController
 
             try:
-                self.teacher = OrcaController.for_env(env)
+                self.teacher = OrcaController.for_env(env, see_obstacles=self.distill)
             except ImportError as err:  # the binding has wheels for Linux x86_64 only
-                raise ValueError(f"--teacher-bc-weight: {err}") from None
+                flag = "--method distill" if self.distill else "--teacher-bc-weight"
+                raise ValueError(f"{flag}: {err}") from None
         #: counters of the run this one started from (``init_from``), for the provenance
         self.initial_stage: dict = {}
         if resume:
@@ -365,22 +368,43 @@ class Trainer:
         return f"{self.run_dir.name} | {stages[-1]['name']}"
 
     # -------------------------------------------------------------- helpers
+    def _recipe_updates(self) -> int:
+        """Updates so far, counted from a recipe's first stage (earlier stages included)."""
+        return self.counters["updates"] + self.initial_stage.get("updates", 0)
+
     def teacher_weight(self) -> float:
         """The behaviour-cloning weight at this update: ``teacher_bc_weight`` falling linearly to 0 over
-        ``teacher_bc_updates`` updates counted from the recipe's first stage (earlier stages included)."""
+        ``teacher_bc_updates`` updates counted from the recipe's first stage (earlier stages included);
+        1 throughout for the ``distill`` method, whose every update is the teacher's."""
         cfg = self.cfg
+        if self.distill:
+            return 1.0
         if cfg.teacher_bc_weight <= 0 or not cfg.teacher_bc_updates:
             return cfg.teacher_bc_weight
-        done = self.counters["updates"] + self.initial_stage.get("updates", 0)
-        return cfg.teacher_bc_weight * max(0.0, 1.0 - done / cfg.teacher_bc_updates)
+        return cfg.teacher_bc_weight * max(0.0, 1.0 - self._recipe_updates() / cfg.teacher_bc_updates)
 
-    def teacher_labels(self, rows: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
-        """The teacher's unit actions for the acting ``rows`` and where they hold (not in worlds with
-        obstacles, which ORCA does not see); (None, None) once the teacher's weight is 0."""
+    def dagger_beta(self) -> float:
+        """``distill``: the share of UAVs that fly the teacher's command this step, 1 falling linearly to 0
+        over ``dagger_beta_updates`` updates of the recipe (DAgger's beta; 0 for the other methods)."""
+        if not self.distill or not self.cfg.dagger_beta_updates:
+            return 0.0
+        return max(0.0, 1.0 - self._recipe_updates() / self.cfg.dagger_beta_updates)
+
+    def teacher_commands(self) -> np.ndarray | None:
+        """The teacher's physical commands [M, 3] for every UAV now; None once the teacher's weight is 0."""
         if self.teacher is None or self.teacher_weight() <= 0:
+            return None
+        return self.teacher.act_env(self.env)
+
+    def teacher_labels(self, rows: np.ndarray, commands: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The teacher's unit actions for the acting ``rows`` and where they hold: everywhere for
+        ``distill`` (its ORCA sees the obstacles), else not in worlds with obstacles."""
+        if commands is None:
             return None, None
         env = self.env
-        action = self.agent.to_unit_action(self.teacher.act_env(env)[rows])
+        action = self.agent.to_unit_action(commands[rows])
+        if self.distill:
+            return action, np.ones(len(rows), dtype=bool)
         return action, ~np.repeat(env.world_has_obstacles, env.uavs_per_world)[rows]
 
     def finished(self) -> bool:
@@ -475,7 +499,14 @@ class Trainer:
         while not self.finished():
             acting = env.acting.copy()
             rows = np.flatnonzero(acting)
-            if k["transitions"] < cfg.init_steps and not cfg.init_from:
+            commands = self.teacher_commands()  # for the observation acted on
+            if self.distill:
+                # DAgger: the student flies its own (deterministic) command, except a beta share of the UAVs
+                # that fly the teacher's; either way the replay keeps the teacher's label for the observation.
+                action = agent.act(obs.depth, obs.state, explore=False)
+                teach = rng.random(env.num_agents) < self.dagger_beta()
+                action[teach] = commands[teach]
+            elif k["transitions"] < cfg.init_steps and not cfg.init_from:
                 action = rng.uniform(low, high, size=(env.num_agents, env.action_spec.dim)).astype(np.float32)
             else:
                 action = agent.act(obs.depth, obs.state, explore=True)
@@ -483,7 +514,7 @@ class Trainer:
             # The governor is part of the environment here: the UAVs fly the governed commands and the
             # replay keeps the policy's own (its critic learns what a command is worth with the governor after it).
             executed = govern(obs, action) if govern is not None else action
-            teacher_action, teacher_valid = self.teacher_labels(rows)  # for the observation acted on
+            teacher_action, teacher_valid = self.teacher_labels(rows, commands)
             privileged = env_privileged_features(env)[rows] if agent.privileged_dim else None
             obs, reward, terminated, truncated, info = env.step(executed)
             next_privileged = env_privileged_features(env)[rows] if agent.privileged_dim else None
@@ -608,6 +639,9 @@ class Trainer:
         if cfg.teacher_bc_weight > 0:  # teacher-guided SAC+AE: not the paper's method alone
             provenance["teacher"] = {"kind": "orca (privileged)", "bc_weight": cfg.teacher_bc_weight,
                                      "bc_updates": cfg.teacher_bc_updates}
+        if self.distill:  # not reinforcement learning: a student of privileged ORCA
+            provenance["teacher"] = {"kind": "orca (privileged, sees obstacles)", "dagger_beta_updates":
+                                     cfg.dagger_beta_updates, "module": "sitl.eval.orca"}
         if selected is not None:
             provenance["selected_snapshot"] = selected  # trained for wall_time_s; these networks are from here
         if cfg.init_from:
