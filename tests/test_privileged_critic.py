@@ -10,7 +10,8 @@ from companion.spec import DEFAULT_ACTION_SPEC, CameraSpec
 from sitl.learn.agent import AgentConfig, SacAeAgent
 from sitl.learn.buffer import FrameReplayBuffer
 from sitl.learn.networks import STATE_FEATURES
-from sitl.learn.privileged import PRIVILEGED_DIM, nearest_obstacle_points, privileged_features
+from sitl.learn.privileged import PRIVILEGED_DIM, privileged_features
+from sitl.sim.collision import nearest_obstacle_points
 from sitl.sim.collision import DISABLED_BOX, DISABLED_CYLINDER, distance_to_obstacles_m
 
 

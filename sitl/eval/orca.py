@@ -35,6 +35,7 @@ import numpy as np
 from companion.frames import ned_to_frd
 from companion.spec import DEFAULT_ACTION_SPEC, ActionSpec, CameraSpec
 from sitl.eval.visibility import camera_fov_rad, in_view
+from sitl.sim.collision import nearest_obstacle_points
 
 
 @dataclass(frozen=True)
@@ -184,6 +185,8 @@ class OrcaController:
         ``obstacle_points_ned`` [M, 3] (``see_obstacles``): each UAV's nearest obstacle point, ``inf``
         where its world has none.
         """
+        if self.see_obstacles and obstacle_points_ned is None:
+            raise ValueError("this ORCA sees the obstacles: give obstacle_points_ned (act_env computes them)")
         pref = preferred_velocity(pos_ned, goal_ned, self.params, self.spec)
         pref[~acting] = 0.0
         vel = np.where(acting[:, None], vel_ned, 0.0)  # hovering UAVs: static obstacles
@@ -218,8 +221,6 @@ class OrcaController:
         d = env.dynamics
         points = None
         if self.see_obstacles:
-            from sitl.learn.privileged import nearest_obstacle_points
-
             worlds = env.num_worlds
             points = nearest_obstacle_points(d.pos_ned.reshape(worlds, self.n, 3), env.boxes,
                                              env.cylinders).reshape(-1, 3)

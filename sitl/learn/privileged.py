@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from companion.frames import ned_to_frd
+from sitl.sim.collision import nearest_obstacle_points
 
 #: How many of the nearest other UAVs the critic sees.
 PRIVILEGED_NEIGHBOURS = 3
@@ -32,36 +33,6 @@ _ALTITUDE_SCALE_M = 10.0
 #: Per neighbour: relative position (3), relative velocity (3), present (1); then the nearest
 #: obstacle point (3) and its presence (1); then the altitude (1).
 PRIVILEGED_DIM = PRIVILEGED_NEIGHBOURS * 7 + 4 + 1
-
-
-def nearest_obstacle_points(points_ned: np.ndarray, boxes: np.ndarray, cylinders: np.ndarray) -> np.ndarray:
-    """[B, P, 3]: the nearest point on any box or vertical cylinder of each world to each of its points.
-
-    ``points_ned`` [B, P, 3]; boxes [B, Kb, 6] and cylinders [B, Kc, 5] in the layout of
-    :mod:`sitl.sim.collision` (padding rows lie 1,000 km away and never win). ``inf`` where a
-    world has no obstacle rows at all.
-    """
-    p = points_ned[:, :, None, :]  # [B, P, 1, 3]
-    candidates, distances = [], []
-    if boxes.shape[1]:
-        b = boxes[:, None, :, :]  # [B, 1, Kb, 6]
-        closest = np.clip(p, b[..., 0:3] - b[..., 3:6], b[..., 0:3] + b[..., 3:6])
-        candidates.append(closest)
-    if cylinders.shape[1]:
-        c = cylinders[:, None, :, :]  # [B, 1, Kc, 5]
-        offset = p[..., 0:2] - c[..., 0:2]
-        radial = np.linalg.norm(offset, axis=-1, keepdims=True)
-        scale = np.minimum(1.0, c[..., 2:3] / np.maximum(radial, 1e-9))  # onto the surface when outside
-        horizontal = c[..., 0:2] + offset * scale
-        vertical = np.clip(p[..., 2:3], c[..., 3:4], c[..., 4:5])
-        candidates.append(np.concatenate([horizontal, vertical], axis=-1))
-    if not candidates:
-        return np.full(points_ned.shape, np.inf)
-    for closest in candidates:
-        distances.append(np.linalg.norm(closest - p, axis=-1))
-    closest = np.concatenate(candidates, axis=2)  # [B, P, K, 3]
-    best = np.argmin(np.concatenate(distances, axis=2), axis=2)  # [B, P]
-    return np.take_along_axis(closest, best[..., None, None], axis=2)[:, :, 0, :]
 
 
 def privileged_features(pos_ned: np.ndarray, vel_ned: np.ndarray, yaw_rad: np.ndarray, present: np.ndarray,
