@@ -416,19 +416,30 @@ def test_help_shows_the_defaults_a_run_uses(preset, capsys):
     assert f"(default: {agent_cfg.init_temperature})" in text and f"(default: {agent_cfg.n_step})" in text
 
 
+#: The one action a test teacher always commands (unit action space).
+TEACHER_TARGET = np.array([0.6, -0.4, 0.3], dtype=np.float32)
+
+
+def _teacher_buffer(some_unlabelled: bool) -> FrameReplayBuffer:
+    """16 steps of 4 UAVs with random 16x16 frames, each labelled with :data:`TEACHER_TARGET`
+    (``some_unlabelled``: UAV 3's label missing on every other step)."""
+    rng = np.random.default_rng(0)
+    buf = FrameReplayBuffer(64, 4, 3, 16, 16, 6, 3)
+    buf.start_episodes(np.arange(4), rng.uniform(0, 20, (4, 16, 16)))
+    for step in range(16):
+        valid = np.array([True, True, True, step % 2 == 0 or not some_unlabelled])
+        buf.add(np.arange(4), rng.normal(size=(4, 6)), rng.uniform(-1, 1, (4, 3)), rng.normal(size=4),
+                rng.uniform(0, 20, (4, 16, 16)), rng.normal(size=(4, 6)), np.zeros(4, bool),
+                np.tile(TEACHER_TARGET, (4, 1)), valid)
+    return buf
+
+
 def test_teacher_term_pulls_the_actor_towards_the_teachers_actions_only_where_they_hold():
     """Teacher-guided SAC+AE: with the behaviour-cloning weight on, the actor's mean action moves
     to the teacher's on the rows the teacher labelled; with it off, the paper's update is unchanged."""
     cam = CameraSpec(width=16, height=16)
-    rng = np.random.default_rng(0)
-    buf = FrameReplayBuffer(64, 4, 3, 16, 16, 6, 3)
-    buf.start_episodes(np.arange(4), rng.uniform(0, 20, (4, 16, 16)))
-    target = np.array([0.6, -0.4, 0.3], dtype=np.float32)
-    for step in range(16):
-        valid = np.array([True, True, True, step % 2 == 0])  # some rows carry no label
-        buf.add(np.arange(4), rng.normal(size=(4, 6)), rng.uniform(-1, 1, (4, 3)), rng.normal(size=4),
-                rng.uniform(0, 20, (4, 16, 16)), rng.normal(size=(4, 6)), np.zeros(4, bool),
-                np.tile(target, (4, 1)), valid)
+    buf = _teacher_buffer(some_unlabelled=True)
+    target = TEACHER_TARGET
     assert buf.teacher_valid[:buf.size].mean() == pytest.approx(14 / 16)
     batch = buf.sample(64, torch.device("cpu"), with_teacher=True)
 
@@ -470,14 +481,8 @@ def test_imitation_update_moves_the_actors_mean_and_its_convolutions_towards_the
     """The distill method's update: the actor's mean action converges on the teacher's labels, and
     the convolutions (for SAC+AE the critic's alone) learn from that loss."""
     cam = CameraSpec(width=16, height=16)
-    rng = np.random.default_rng(0)
-    buf = FrameReplayBuffer(64, 4, 3, 16, 16, 6, 3)
-    buf.start_episodes(np.arange(4), rng.uniform(0, 20, (4, 16, 16)))
-    target = np.array([0.6, -0.4, 0.3], dtype=np.float32)
-    for _ in range(16):
-        buf.add(np.arange(4), rng.normal(size=(4, 6)), rng.uniform(-1, 1, (4, 3)), rng.normal(size=4),
-                rng.uniform(0, 20, (4, 16, 16)), rng.normal(size=(4, 6)), np.zeros(4, bool), np.tile(target, (4, 1)))
-    batch = buf.sample(64, torch.device("cpu"), with_teacher=True)
+    target = TEACHER_TARGET
+    batch = _teacher_buffer(some_unlabelled=False).sample(64, torch.device("cpu"), with_teacher=True)
     torch.manual_seed(0)
     agent = SacAeAgent(AgentConfig(method="distill", hidden_dim=32), cam, DEFAULT_ACTION_SPEC)
     convs = [p.detach().clone() for p in agent.actor.encoder.convs.parameters()]
