@@ -12,9 +12,9 @@ from companion.spec import CAMERA_PRESETS
 from sitl.eval.evaluate import EvalSettings, evaluate_method
 from sitl.eval.methods import resolve_method
 from sitl.sim.baselines import straight_actor
-from sitl.sim.config import ScenarioConfig, SimConfig
-from sitl.sim.env import SwarmEnv
+from sitl.sim.config import ScenarioConfig
 from sitl.sim.episodes import governed_actor
+from tests.sim_helpers import pole_world
 
 CAMERA = CAMERA_PRESETS["realsense_d435"]
 FAR = CAMERA.max_range_m
@@ -96,16 +96,10 @@ def test_bad_settings_are_refused(field, value):
 
 def _pole_run(spec: GovernorSpec | None) -> tuple[str, float]:
     """One UAV flying straight at its goal 10 m north through a 0.2 m pole: its outcome and closest approach."""
-    cfg = SimConfig(num_uavs=1, camera=CAMERA, max_episode_steps=300,
-                    scenario=ScenarioConfig(name="random", density=0.01, min_goal_distance_m=0.0))
-    env = SwarmEnv(cfg, seed=0, cylinders=np.array([[[0.0, 0.0, 0.2, -30.0, 0.0]]]))
-    env.reset()
-    env.dynamics.reset(np.array([0]), np.array([[-5.0, 0.0, -8.0]]), np.array([0.0]))
-    env.goal_ned[0] = [5.0, 0.0, -8.0]
+    env, obs = pole_world()
     act = straight_actor(env)
     if spec is not None:
         act = governed_actor(act, spec, env)
-    obs, *_ = env.step(np.zeros((1, 3), dtype=np.float32))  # an observation from the placed start
     closest = math.inf
     for _ in range(400):
         obs, _, term, _, _ = env.step(act(obs))

@@ -169,19 +169,11 @@ def test_orca_fov_avoids_only_the_uavs_its_camera_covers():
 
 def _orca_pole_run(see_obstacles: bool) -> tuple[str, float]:
     """One UAV flying ORCA to its goal 10 m north, through a 0.2 m pole: its outcome and closest approach."""
-    from companion.spec import REALSENSE_D435
     from sitl.eval.orca import orca_actor
-    from sitl.sim.config import SimConfig
-    from sitl.sim.env import SwarmEnv
+    from tests.sim_helpers import pole_world
 
-    cfg = SimConfig(num_uavs=1, camera=REALSENSE_D435, max_episode_steps=300,
-                    scenario=ScenarioConfig(name="random", density=0.01, min_goal_distance_m=0.0))
-    env = SwarmEnv(cfg, seed=0, cylinders=np.array([[[0.0, 0.05, 0.2, -30.0, 0.0]]]))
-    env.reset()
-    env.dynamics.reset(np.array([0]), np.array([[-5.0, 0.0, -8.0]]), np.array([0.0]))
-    env.goal_ned[0] = [5.0, 0.0, -8.0]
+    env, obs = pole_world(pole_east_m=0.05)  # exactly head-on is degenerate for RVO2-3D
     act = orca_actor(env, see_obstacles=see_obstacles)
-    obs, *_ = env.step(np.zeros((1, 3), dtype=np.float32))  # an observation from the placed start
     closest = math.inf
     for _ in range(300):
         obs, _, term, trunc, _ = env.step(act(obs))

@@ -27,7 +27,7 @@ from pathlib import Path
 
 from companion.governor import GovernorSpec
 from sitl.eval.evaluate import EvalSettings, evaluate_method
-from sitl.eval.methods import Method, file_digest, resolve_method
+from sitl.eval.methods import ORCA_BASELINES, Method, file_digest, resolve_method
 from sitl.eval.report import markdown_table, write_json
 from sitl.sim.camera import StereoNoise
 from sitl.sim.config import DENSITIES, FLOWN_ALTITUDE_RANGE_M, OBSTACLE_SCENE_DENSITY, scenario_for
@@ -80,8 +80,8 @@ def _cell_key(cell: FlownCell, method: Method) -> dict:
            "policy_sha256": file_digest(method.path) if method.path else None}
     if method.governor is not None:  # only then: the keys of stored ungoverned cells stay as they were
         key["governor"] = method.governor.to_dict()
-    if "orca" in method.info():  # ORCA's settings, whether it sees the obstacles included (since 2026-11-27)
-        key["orca"] = method.info()["orca"]
+    if method.kind == "baseline" and method.label in ORCA_BASELINES:  # its settings, obstacle-seeing included
+        key["orca"] = method.info()["orca"]  # (since 2026-11-27); info() hashes no file for a baseline
     return key
 
 
