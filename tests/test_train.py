@@ -457,12 +457,12 @@ def test_teacher_term_pulls_the_actor_towards_the_teachers_actions_only_where_th
     assert distance_after(5.0) < 0.2 * distance_after(0.0)
 
 
-def test_trainer_labels_with_privileged_orca_outside_obstacle_worlds_and_the_weight_decays(tmp_path):
+def test_trainer_labels_with_privileged_orca_outside_circle_worlds_and_the_weight_decays(tmp_path):
     from sitl.learn.config import PRESETS, resolve_configs
     from sitl.learn.trainer import make_trainer
 
     cfg, agent_cfg = resolve_configs(
-        {**PRESETS["flown"]["train"], "preset": "flown", "scenario": "mixed", "circle_fraction": 0.0,
+        {**PRESETS["flown"]["train"], "preset": "flown", "scenario": "mixed", "circle_fraction": 0.5,
          "obstacle_fraction": 0.5, "num_worlds": 4, "total_updates": 6, "init_steps": 100, "batch_size": 16,
          "eval_every_updates": 0, "final_eval_episodes": 0, "teacher_bc_weight": 2.0, "teacher_bc_updates": 12},
         {"hidden_dim": 32})
@@ -471,8 +471,12 @@ def test_trainer_labels_with_privileged_orca_outside_obstacle_worlds_and_the_wei
     trainer.run()
     assert trainer.teacher_weight() == pytest.approx(1.0)  # 6 of 12 updates done
     buf, env = trainer.buffer, trainer.env
+    assert trainer.teacher.see_obstacles
     valid = buf.teacher_valid[:buf.size, 0]
-    assert 0 < valid.mean() < 1  # obstacle worlds were left out, the others labelled
+    assert 0 < valid.mean() < 1  # circle worlds were left out, the obstacle worlds labelled
+    circle_rows = np.repeat(env.world_is_circle, env.uavs_per_world)
+    newest = (buf._next - 1 - np.arange(env.num_agents)) % buf.capacity  # the last step's rows, newest first
+    assert np.array_equal(buf.teacher_valid[newest, 0] > 0, ~circle_rows[::-1])
     labels = buf.teacher_action[:buf.size][valid > 0]
     assert np.abs(labels).max() <= 1.0 and labels[:, 0].max() > 0  # unit actions; ORCA flies forward
 
@@ -525,3 +529,52 @@ def test_distill_trainer_labels_every_world_and_hands_over_from_teacher_to_stude
     newest = (buf._next - 1 - np.arange(env.num_agents)) % buf.capacity
     assert not np.allclose(buf.action[newest], buf.teacher_action[newest], atol=1e-3)
     assert trainer.teacher.see_obstacles
+
+
+def test_frozen_convolutions_stay_put_and_a_delayed_actor_waits_for_its_critic():
+    """SAC on fixed features (``freeze_convs``, the cnn method only): the critic learns, the convolutions
+    do not; with ``actor_delay_updates`` the actor and temperature stay put for that many updates."""
+    torch.manual_seed(0)
+    cam = CameraSpec(width=16, height=16)
+    agent = SacAeAgent(AgentConfig(method="cnn", hidden_dim=32, freeze_convs=True, actor_delay_updates=4,
+                                   actor_update_freq=1), cam, DEFAULT_ACTION_SPEC)
+    batch = _teacher_buffer(some_unlabelled=False).sample(16, agent.device)
+    convs = [p.detach().clone() for p in agent.critic.encoder.convs.parameters()]
+    actor = agent.actor.trunk[0].weight.detach().clone()
+    critic = agent.critic.q1[0].weight.detach().clone()
+    for _ in range(4):
+        info = agent.update(batch)
+    assert "losses/actor" not in info and torch.equal(actor, agent.actor.trunk[0].weight)
+    assert agent.alpha.item() == pytest.approx(AgentConfig().init_temperature)
+    assert not torch.equal(critic, agent.critic.q1[0].weight)
+    info = agent.update(batch)
+    assert "losses/actor" in info and not torch.equal(actor, agent.actor.trunk[0].weight)
+    assert all(torch.equal(a, b) for a, b in zip(convs, agent.critic.encoder.convs.parameters()))
+    with pytest.raises(ValueError, match="freeze_convs is for the cnn method"):
+        AgentConfig(method="sac_ae", freeze_convs=True)
+
+
+def test_a_distilled_student_hands_over_to_sac_with_its_convolutions_and_a_fresh_target_critic(tmp_path):
+    """The flown-distill recipe's hand-over: a cnn run started from a distill run's checkpoint takes the
+    student's networks (not its optimisers), its target critic starts as its critic, and with frozen
+    convolutions the student's features are what the actor keeps seeing."""
+    from sitl.learn.config import PRESETS, resolve_configs
+    from sitl.learn.trainer import make_trainer
+
+    common = {**PRESETS["flown"]["train"], "preset": "flown", "scenario": "random", "num_worlds": 2,
+              "init_steps": 32, "batch_size": 16, "eval_every_updates": 0, "final_eval_episodes": 0}
+    cfg, agent_cfg = resolve_configs({**common, "method": "distill", "total_updates": 6}, {"hidden_dim": 32})
+    student = make_trainer(cfg, agent_cfg, tmp_path / "student")
+    student.run()
+    cfg, agent_cfg = resolve_configs({**common, "method": "cnn", "total_updates": 6,
+                                      "init_from": str(tmp_path / "student")},
+                                     {"hidden_dim": 32, "freeze_convs": True, "actor_delay_updates": 3})
+    sac = make_trainer(cfg, agent_cfg, tmp_path / "sac")
+    convs = [p.detach().clone() for p in student.agent.critic.encoder.convs.parameters()]
+    assert all(torch.equal(a, b) for a, b in zip(convs, sac.agent.actor.encoder.convs.parameters()))
+    assert all(torch.equal(a, b) for a, b in zip(sac.agent.critic.parameters(), sac.agent.critic_target.parameters()))
+    assert not all(torch.equal(a, b) for a, b in zip(student.agent.critic_target.encoder.parameters(),
+                                                     sac.agent.critic_target.encoder.parameters()))
+    sac.run()
+    assert sac.initial_stage["updates"] == 6 and sac.agent.updates == 6
+    assert all(torch.equal(a, b) for a, b in zip(convs, sac.agent.critic.encoder.convs.parameters()))

@@ -70,7 +70,12 @@ class AgentConfig:
         "help": "asymmetric actor-critic (not in the paper): the critic also sees the true positions and velocities "
                 "of the 3 nearest UAVs, the nearest obstacle point and the altitude (sitl.learn.privileged); "
                 "the actor and the policy file are unchanged"})
-
+    freeze_convs: bool = field(default=False, metadata={
+        "help": "cnn method only: the convolutions are not trained (SAC on fixed features, e.g. those of a "
+                "distilled student handed over to reinforcement learning; not in the paper)"})
+    actor_delay_updates: int = field(default=0, metadata={
+        "help": "no actor or temperature update in this agent's first N updates: the critic learns the policy "
+                "it was handed before the policy moves (not in the paper)"})
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -78,10 +83,13 @@ class AgentConfig:
         # Ranges written so that NaN fails them too (every comparison with NaN is false).
         for name, low, high in (("hidden_dim", 1, 8192), ("latent_dim", 1, 1024), ("num_filters", 1, 256),
                                 ("critic_target_update_freq", 1, 10_000), ("actor_update_freq", 1, 10_000),
-                                ("decoder_update_freq", 1, 10_000), ("n_step", 1, 1000), ("drq_pad", 0, 16)):
+                                ("decoder_update_freq", 1, 10_000), ("n_step", 1, 1000), ("drq_pad", 0, 16),
+                                ("actor_delay_updates", 0, 10_000_000)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
                 raise ValueError(f"{name} must be an integer in {low}..{high}, got {value!r}")
+        if self.freeze_convs and self.method != "cnn":
+            raise ValueError(f"freeze_convs is for the cnn method (SAC on fixed convolutions), not {self.method!r}")
         checks = {
             "discount": (lambda v: 0.0 < v <= 1.0, "in (0, 1]"),
             "critic_tau": (lambda v: 0.0 < v <= 1.0, "in (0, 1]"),
@@ -152,6 +160,9 @@ class SacAeAgent(nn.Module):
                     child.apply(weight_init)
         if config.method != "vae":
             self.actor.encoder.tie_convs_to(self.critic.encoder)  # actor convs = critic convs (Fig. 2)
+        if config.freeze_convs:
+            for p in self.critic.encoder.convs.parameters():
+                p.requires_grad_(False)
         self.critic_target = copy.deepcopy(self.critic)
         self.decoder = None
         if config.method == "sac_ae":
@@ -299,6 +310,11 @@ class SacAeAgent(nn.Module):
         self.decoder_optimizer.step()
         return {"losses/reconstruction": rec_loss.item()}
 
+    def copy_critic_to_target(self) -> None:
+        """Make the target critic the critic itself: where a run starts from networks whose critic was
+        never trained (a distilled student's), the old target would only pull towards stale weights."""
+        self.critic_target.load_state_dict(self.critic.state_dict())
+
     def soft_update_targets(self) -> None:
         """EMA of the critic (tau_Q) and of its encoder (tau_enc), Table I."""
         cfg = self.config
@@ -323,7 +339,7 @@ class SacAeAgent(nn.Module):
             pixels, next_pixels = random_shift(pixels, cfg.drq_pad), random_shift(next_pixels, cfg.drq_pad)
         info = self.update_critic(pixels, state, batch["action"], batch["reward"], next_pixels, next_state,
                                   batch["discount"], batch.get("privileged"), batch.get("next_privileged"))
-        if self.updates % cfg.actor_update_freq == 0:
+        if self.updates >= cfg.actor_delay_updates and self.updates % cfg.actor_update_freq == 0:
             info |= self.update_actor_and_alpha(pixels, state, batch.get("teacher_action"), batch.get("teacher_valid"),
                                                 bc_weight, batch.get("privileged"))
         if self.updates % cfg.critic_target_update_freq == 0:
@@ -339,7 +355,7 @@ class SacAeAgent(nn.Module):
         return {n: getattr(self, n) for n in names if hasattr(self, n)}
 
     def checkpoint(self) -> dict:
-        return {"model": self.state_dict(), "updates": self.updates,
+        return {"model": self.state_dict(), "updates": self.updates, "method": self.config.method,
                 "optimizers": {n: o.state_dict() for n, o in self.optimizers().items()}}
 
     def restore(self, checkpoint: dict) -> None:

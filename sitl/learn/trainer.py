@@ -123,6 +123,14 @@ def load_training_file(path: Path, weights_only: bool = True):
     return torch.load(path, weights_only=weights_only, map_location="cpu")
 
 
+def _run_method(run_dir: Path) -> str | None:
+    """The learning method a run directory was trained with (its config.json), None if it has none."""
+    try:
+        return json.loads((run_dir / "config.json").read_text())["agent"]["method"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
 def snapshot_counters(snapshot: Path) -> dict:
     """Training that went into a validated snapshot ``RUN/snapshots/agent_<updates>.pt``.
 
@@ -248,15 +256,15 @@ class Trainer:
         from torch.utils.tensorboard import SummaryWriter
 
         self.writer = SummaryWriter(str(run_dir / "tb"))
-        #: privileged ORCA labels the actions: teacher-guided SAC+AE (``teacher_bc_weight`` > 0; ORCA
-        #: blind to obstacles, as it was probed) or the ``distill`` method (ORCA that sees them)
+        #: privileged ORCA (it sees every UAV and the obstacles) labels the actions: teacher-guided SAC+AE
+        #: (``teacher_bc_weight`` > 0) or the ``distill`` method
         self.teacher = None
         self.distill = agent_cfg.method == "distill"
         if cfg.teacher_bc_weight > 0 or self.distill:
             from sitl.eval.orca import OrcaController
 
             try:
-                self.teacher = OrcaController.for_env(env, see_obstacles=self.distill)
+                self.teacher = OrcaController.for_env(env, see_obstacles=True)
             except ImportError as err:  # the binding has wheels for Linux x86_64 only
                 flag = "--method distill" if self.distill else "--teacher-bc-weight"
                 raise ValueError(f"{flag}: {err}") from None
@@ -325,15 +333,25 @@ class Trainer:
                              f"{type(ckpt).__name__} (an exported policy.pt cannot be trained further; "
                              "pass the run directory it came from)")
         is_snapshot = "agent" not in ckpt
+        source = _run_method(path.parent.parent) if is_snapshot else ckpt["agent"].get("method", _run_method(path.parent))
+        handover = self.agent_cfg.method != "distill" and source == "distill"
         try:
             if is_snapshot:
                 self.agent.load_state_dict(ckpt)
+            elif handover:  # another method's optimisers (the student's trained its convolutions): networks only
+                self.agent.load_state_dict(ckpt["agent"]["model"])
             else:
                 self.agent.restore(ckpt["agent"])
         except (RuntimeError, KeyError, ValueError, TypeError) as err:
             raise ValueError(f"--init-from {path}: its networks do not match this run's agent settings "
                              f"(method, hidden_dim, image_size, privileged_critic, ...): {str(err)[:300]}") from None
         self.agent.apply_learning_rates()
+        if handover:
+            # A distilled student hands over to reinforcement learning: its critic was never trained,
+            # and its target critic still holds the initial weights (the convolutions included).
+            self.agent.copy_critic_to_target()
+            self.log(f"{path}: a distilled student, handed over to {self.agent_cfg.method}; its target critic "
+                     "starts as its critic")
         self.initial_stage = snapshot_counters(path) if is_snapshot else \
             add_counters(ckpt["counters"], ckpt.get("initial_stage", {}))  # that run may itself be a later stage
         # The curve goes on from the earlier stages' (theirs up to the networks taken from them).
@@ -398,14 +416,15 @@ class Trainer:
 
     def teacher_labels(self, rows: np.ndarray, commands: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray | None]:
         """The teacher's unit actions for the acting ``rows`` and where they hold: everywhere for
-        ``distill`` (its ORCA sees the obstacles), else not in worlds with obstacles."""
+        ``distill``, else outside circle worlds (teacher-guided SAC: ORCA's circle manoeuvre depends on UAVs
+        the camera does not see, and the student imitating it failed the circle, docs/training.md)."""
         if commands is None:
             return None, None
         env = self.env
         action = self.agent.to_unit_action(commands[rows])
         if self.distill:
             return action, np.ones(len(rows), dtype=bool)
-        return action, ~np.repeat(env.world_has_obstacles, env.uavs_per_world)[rows]
+        return action, ~np.repeat(env.world_is_circle, env.uavs_per_world)[rows]
 
     def finished(self) -> bool:
         c, k = self.cfg, self.counters
@@ -637,8 +656,8 @@ class Trainer:
             provenance["privileged_critic"] = {"neighbours": PRIVILEGED_NEIGHBOURS, "obstacle_point": True,
                                                "altitude": True, "module": "sitl.learn.privileged"}
         if cfg.teacher_bc_weight > 0:  # teacher-guided SAC+AE: not the paper's method alone
-            provenance["teacher"] = {"kind": "orca (privileged)", "bc_weight": cfg.teacher_bc_weight,
-                                     "bc_updates": cfg.teacher_bc_updates}
+            provenance["teacher"] = {"kind": "orca (privileged, sees obstacles; circle worlds unlabelled)",
+                                     "bc_weight": cfg.teacher_bc_weight, "bc_updates": cfg.teacher_bc_updates}
         if self.distill:  # not reinforcement learning: a student of privileged ORCA
             provenance["teacher"] = {"kind": "orca (privileged, sees obstacles)", "dagger_beta_updates":
                                      cfg.dagger_beta_updates, "module": "sitl.eval.orca"}

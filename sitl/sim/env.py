@@ -101,6 +101,7 @@ class SwarmEnv:
         self.flight_steps = np.zeros(m, dtype=np.int64)
         self.world_steps = np.zeros(self.num_worlds, dtype=np.int64)
         self.world_episode = np.full(self.num_worlds, -1, dtype=np.int64)
+        self.world_is_circle = np.zeros(self.num_worlds, dtype=bool)  # [B] the episode is a circle
         self._episodes_started = 0
         self._paths: list[list[np.ndarray]] = [[] for _ in range(m)]
         self.completed: list[UAVRecord] = []  # records of finished episodes, in order
@@ -150,6 +151,7 @@ class SwarmEnv:
             if self.config.dynamics_randomization is not None:
                 self.dynamics.randomize(rows, self.config.dynamics_randomization, self.rng)
             self._place_obstacles(b, sample.boxes, sample.cylinders)
+            self.world_is_circle[b] = sample.circle
             if self.config.mount_pitch_jitter_deg > 0:
                 jitter = np.radians(self.config.mount_pitch_jitter_deg)
                 self.mount_pitch_rad[rows] = self.config.camera.mount_pitch_rad + self.rng.uniform(-jitter, jitter, n)

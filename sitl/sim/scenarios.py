@@ -35,6 +35,7 @@ class ScenarioSample:
     yaw_rad: np.ndarray  # [N]
     boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))  # [Kb, 6] static boxes (camera layout)
     cylinders: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)))  # [Kc, 5] static vertical cylinders
+    circle: bool = False  # a circle episode (every UAV bound for the antipodal point)
 
 
 def random_box_size(num_uavs: int, density: float, aspect: float) -> tuple[float, float]:
@@ -179,7 +180,7 @@ def sample_circle(num_uavs: int, config: ScenarioConfig, rng: np.random.Generato
     ring[:, 2] = -alt
     goal = ring * np.array([-1.0, -1.0, 1.0])
     start = ring + rng.uniform(-config.circle_jitter_m, config.circle_jitter_m, ring.shape)
-    return ScenarioSample(start, goal, _bearing_rad(start, goal))
+    return ScenarioSample(start, goal, _bearing_rad(start, goal), circle=True)
 
 
 def sample_scenario(num_uavs: int, config: ScenarioConfig, rng: np.random.Generator) -> ScenarioSample:
