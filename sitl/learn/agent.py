@@ -15,7 +15,9 @@ Methods (``AgentConfig.method``):
   the trainer labels every transition with what obstacle-aware ORCA, which knows every UAV's and
   obstacle's true position, would command (:mod:`sitl.eval.orca`), and the UAVs fly a mixture of
   teacher and student that hands over to the student (``TrainConfig.dagger_beta_updates``).
-  :meth:`SacAeAgent.update_imitation`; the critic is built but never trained.
+  :meth:`SacAeAgent.update_imitation`; the critic is built but never trained. A later stage may hand
+  the student to SAC (``cnn`` with ``freeze_convs``: its convolutions stay, and ``actor_delay_updates``
+  lets the critic learn before the actor moves; the ``flown-distill`` recipe).
 
 The update follows the equations: :meth:`SacAeAgent.update_critic` (eqs. 5-6),
 :meth:`SacAeAgent.update_actor_and_alpha` (eq. 7), :meth:`SacAeAgent.update_decoder` (eq. 8).

@@ -19,6 +19,10 @@ Presets (``--preset``):
   UAV-UAV collision at -50 from the third stage on and a fourth stage at learning rates 1e-4
   with half of its episodes circles: 38-40 min on 2 cores, run whole; the bundled policy is its
   seed 0 (docs/training.md, models/README.md).
+* ``flown-distill`` — flown-fast's four stages, the first two as the ``distill`` method (a DAgger
+  student of privileged ORCA, four times the data per update), the last two as SAC on the student's
+  frozen convolutions, still pulled towards ORCA outside circles (a method beside SAC+AE, issue 17;
+  docs/training.md "From the distilled student to SAC").
 * ``bundle-paper`` — a recipe: the paper-camera policy's four-stage curriculum.
 
 Everything is a command-line flag (``--help``); a run directory holds ``config.json``,

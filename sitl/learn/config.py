@@ -137,7 +137,8 @@ class TrainConfig:
     vae_epochs: int = _param(20, "vae method: training epochs of the VAE")
     teacher_bc_weight: float = _param(0.0, "weight of a behaviour-cloning term in the actor loss that pulls the actor's "
                                       "mean action towards privileged ORCA's (a teacher that knows every UAV and "
-                                      "obstacle; circle worlds excluded: its circle manoeuvre needs UAVs out of view), in units of the critic's mean |Q| (at least 1); 0: the paper's "
+                                      "obstacle; circle worlds excluded: its circle manoeuvre needs UAVs out of "
+                                      "view), in units of the critic's mean |Q| (at least 1); 0: the paper's "
                                       "SAC+AE (docs/training.md 'Teacher-guided SAC+AE')")
     teacher_bc_updates: int = _param(0, "the teacher's weight falls linearly to 0 over this many updates, counted "
                                         "from the first stage of a recipe (0: it stays constant)")
