@@ -43,7 +43,7 @@ from pathlib import Path
 
 from sitl.cli_args import ArgumentParser, finite_float, integer, positive_float, positive_floats
 from sitl.learn.agent import AgentConfig
-from sitl.learn.config import PRESETS, WHERE_SETTINGS, TrainConfig, resolve_configs
+from sitl.learn.config import PRESETS, WHERE_SETTINGS, DeviceUnavailable, TrainConfig, resolve_configs
 from sitl.learn.recipe import RECIPE_FILE, Recipe, scaled_stages
 from sitl.learn.trainer import make_trainer
 
@@ -148,7 +148,7 @@ def move_run(run_dir: Path, where: dict) -> None:
 
 def _resume_error(err: Exception) -> str:
     """Why a run's config.json could not be taken up again."""
-    if isinstance(err, ValueError) and "device" in str(err):  # e.g. trained on cuda, resumed on a laptop
+    if isinstance(err, DeviceUnavailable):  # e.g. trained on cuda, resumed on a laptop
         return f"{err} (give --device cpu to continue it here)"
     return f"its config.json is missing or invalid ({err})"
 

@@ -42,6 +42,10 @@ def _param(default, help: str):
     return field(default=default, metadata={"help": help})
 
 
+class DeviceUnavailable(ValueError):
+    """A run's torch device is unknown or not on this machine (a run trained on cuda, resumed on a laptop)."""
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """Everything a training run depends on besides the agent's hyperparameters."""
@@ -219,7 +223,7 @@ class TrainConfig:
         try:
             torch.device(self.device)
         except RuntimeError:
-            raise ValueError(f"unknown torch device {self.device!r}; use cpu or cuda") from None
+            raise DeviceUnavailable(f"unknown torch device {self.device!r}; use cpu or cuda") from None
         if self.frame_ages:
             parse_frame_ages(self.frame_ages)  # raises ValueError naming the problem
             if self.frame_stride != 1:
@@ -237,7 +241,7 @@ class TrainConfig:
         if self.updates_per_episode <= 0 and self.updates_per_env_step <= 0:
             raise ValueError("set updates_per_episode or updates_per_env_step: the run needs updates")
         if self.device.startswith("cuda") and not torch.cuda.is_available():
-            raise ValueError("--device cuda asked for, but torch sees no CUDA device")
+            raise DeviceUnavailable("--device cuda asked for, but torch sees no CUDA device")
 
 
 #: (field, lowest, highest) of TrainConfig's integers.
