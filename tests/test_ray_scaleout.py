@@ -155,6 +155,21 @@ def test_a_recipe_run_reports_its_whole_recipe(tmp_path):
     assert result["last_validation_success"] == 0.7 and result["final_success"] == {"random": 0.8}
 
 
+def test_a_run_is_evaluated_as_the_method_its_policy_file_records(tmp_path, contract_policy):
+    """A recipe whose first stages distil and whose last one is SAC (``flown-distill``): its run's
+    config.json names the first stage's method, the exported file the one it was trained as."""
+    from sitl.learn.sweep import eval_cells, evaluation_settings
+
+    run = tmp_path / "s0"
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps({"train": {"method": "distill"}}))
+    settings = evaluation_settings(2)
+    [(label, cell)] = eval_cells(run, ["flown:obstacles"], settings, policy=contract_policy)
+    assert label == "flown:obstacles" and cell.method == "sac_ae"  # the file's provenance
+    [(_, cell)] = eval_cells(run, ["flown:obstacles"], settings)  # no policy.pt yet: the run's config
+    assert cell.method == "distill"
+
+
 def test_sweep_refuses_an_unknown_evaluation_cell(capsys):
     from sitl.learn.sweep import parse_args
 

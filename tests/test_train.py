@@ -481,6 +481,25 @@ def test_trainer_labels_with_privileged_orca_outside_circle_worlds_and_the_weigh
     assert np.abs(labels).max() <= 1.0 and labels[:, 0].max() > 0  # unit actions; ORCA flies forward
 
 
+def test_validations_fly_their_own_time_limit_and_record_it(tmp_path):
+    """``validation_steps``: the training episodes keep theirs; each validation row says which it flew."""
+    from sitl.learn.config import resolve_configs
+    from sitl.learn.trainer import make_trainer
+
+    rows = {}
+    for steps in (0, 3):
+        cfg, agent_cfg = resolve_configs(
+            {"num_uavs": 2, "num_worlds": 2, "image_size": 16, "batch_size": 16, "init_steps": 20, "total_updates": 4,
+             "eval_every_updates": 4, "eval_episodes": 4, "select_best": True, "final_eval_episodes": 0,
+             "max_episode_steps": 40, "validation_steps": steps}, {"hidden_dim": 32})
+        trainer = make_trainer(cfg, agent_cfg, tmp_path / f"v{steps}")
+        trainer.run()
+        [rows[steps]] = json.loads((tmp_path / f"v{steps}" / "snapshots" / "validation.json").read_text())
+    assert rows[0]["max_episode_steps"] == 40 and rows[3]["max_episode_steps"] == 3
+    # 0.3 s is too short to reach a goal: every UAV that did not collide timed out, so none succeeded
+    assert rows[3]["random"]["success_rate"] == 0.0
+
+
 def test_imitation_update_moves_the_actors_mean_and_its_convolutions_towards_the_teacher():
     """The distill method's update: the actor's mean action converges on the teacher's labels, and
     the convolutions (for SAC+AE the critic's alone) learn from that loss."""

@@ -302,14 +302,31 @@ def fly_policy_cells(cells: list[tuple[str, "PaperCell"]], out_dir: Path) -> Non
               flush=True)
 
 
+def _trained_method(policy: Path) -> str | None:
+    """The method recorded in a policy file's provenance; None if the file is missing or unreadable."""
+    from companion.policy import PolicyFileError, load_policy
+
+    if not policy.is_file():
+        return None
+    try:
+        return load_policy(policy, check_forward=False).metadata.get("provenance", {}).get("method")
+    except PolicyFileError:
+        return None  # the cell itself reports the unusable file
+
+
 def eval_cells(run_dir: Path, labels: list[str], settings: dict[str, "EvalSettings"],
                policy: Path | None = None) -> list[tuple[str, "PaperCell"]]:
     """``(label, cell)`` for each ``--eval`` cell of one run: its policy file (``policy``, default
-    ``run_dir/policy.pt``), evaluated as the method the run trained."""
+    ``run_dir/policy.pt``), evaluated as the method that trained it.
+
+    The method is the policy file's own record (a recipe's stages may change method, e.g.
+    ``flown-distill`` exports a SAC actor after distilled stages), else the run's config.
+    """
     from sitl.eval.paper import PaperCell
 
-    method = (_read_json(run_dir / "config.json") or {}).get("train", {}).get("method", "sac_ae")
     path = str(policy if policy is not None else run_dir / "policy.pt")
+    method = _trained_method(Path(path)) or \
+        (_read_json(run_dir / "config.json") or {}).get("train", {}).get("method", "sac_ae")
     return [(label, PaperCell(label.replace(":", "-"), method, path, settings[label])) for label in labels]
 
 
