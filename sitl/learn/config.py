@@ -112,7 +112,8 @@ class TrainConfig:
                                           "cap on the new depth frame (paper: 0; docs/training.md 'A price on "
                                           "outrunning the corridor')")
     max_episode_steps: int = _param(200, "episode time limit in 0.1 s steps of training and of the trainer's own "
-                                         "evaluations (validation, rescoring and policy.json's final evaluation); "
+                                         "evaluations (validation unless --validation-steps, rescoring and "
+                                         "policy.json's final evaluation unless the recipe sets its own); "
                                          "swarm_test flies its own --max-steps (default "
                                          f"{DEFAULT_TASK_SPEC.max_episode_steps})")
     validation_steps: int = _param(0, "time limit of the periodic validations in 0.1 s steps (0: max_episode_steps); "
@@ -159,6 +160,10 @@ class TrainConfig:
     def time_limit(self, evaluation_steps: int | None = None) -> int:
         """An evaluation's time limit in steps: ``evaluation_steps`` when given, else the training episodes'."""
         return evaluation_steps or self.max_episode_steps
+
+    def validation_time_limit(self) -> int:
+        """The periodic validations' time limit in steps: ``validation_steps``, else the training episodes'."""
+        return self.time_limit(self.validation_steps or None)
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:

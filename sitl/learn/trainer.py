@@ -443,7 +443,7 @@ class Trainer:
     def validate(self, write=print) -> None:
         """Evaluate on the validation seeds, log it, and keep a snapshot when selecting the best."""
         cfg, k = self.cfg, self.counters
-        summaries = self.evaluate(cfg.eval_episodes, VALIDATION_SEED_OFFSET, max_episode_steps=cfg.validation_steps or None)
+        summaries = self.evaluate(cfg.eval_episodes, VALIDATION_SEED_OFFSET, max_episode_steps=cfg.validation_time_limit())
         if cfg.select_best:
             self._keep_snapshot(summaries)
         self.history["eval_episode"].append(self._episode_offset() + k["episodes"])
@@ -477,7 +477,7 @@ class Trainer:
         index = [row for row in index if row["updates"] != updates]
         counters = {n: self.counters[n] for n in ("env_steps", "transitions", "episodes")}
         index.append({"updates": updates, "wall_s": round(time.perf_counter() - self._started, 1), "score": score,
-                      "counters": counters, "max_episode_steps": self.cfg.time_limit(self.cfg.validation_steps or None),
+                      "counters": counters, "max_episode_steps": self.cfg.validation_time_limit(),
                       **{name: {"success_rate": s["success_rate"], "spl": s["spl"]} for name, s in summaries.items()}})
         index_path.write_text(json.dumps(index, indent=1))
 
