@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 
 from companion.spec import CameraSpec
+from sitl.learn.config import TRAINING_STEREO_NOISE, make_sim_config, resolve_configs
 from sitl.sim.camera import DepthCamera, SceneGeometry, StereoNoise
 from tests.reference_camera import render_reference
 
@@ -124,13 +126,35 @@ def test_stereo_noise_reports_no_data_as_zero_not_a_noisy_far_wall():
     assert np.all(perfect == spec.max_range_m)
     noisy = StereoNoise().apply(perfect, spec.max_range_m, rng)
     assert np.all(noisy == 0.0)
-    # A box edge: holes cluster at the depth discontinuity.
+
+
+def test_edge_holes_fall_in_the_occlusion_shadow_not_on_the_nearer_surface():
+    """A stereo pair cannot match the strip of far surface left of a nearer one (depth is the left
+    imager's): only that side of a vertical edge gets holes; the near surface keeps its depth."""
+    rng = np.random.default_rng(2)
+    edges_only = dict(dropout_prob=0.0, far_hole_prob=0.0, blob_prob=0.0)
     depth = np.full((400, 8, 8), 9.0, dtype=np.float32)
-    depth[:, :, :4] = 2.0
-    noisy = StereoNoise(dropout_prob=0.0, far_hole_prob=0.0, blob_prob=0.0).apply(depth, 10.0, rng)
-    holes = (noisy == 0).mean(axis=(0, 1))
+    depth[:, :, 4:] = 2.0  # a near surface on the right: its shadow falls on column 3
+    holes = (StereoNoise(**edges_only).apply(depth, 10.0, rng) == 0).mean(axis=(0, 1))
+    assert holes[3] == pytest.approx(0.3, abs=0.05)
+    assert np.all(holes[[0, 1, 2, 4, 5, 6, 7]] == 0)
+    mirrored = depth[:, :, ::-1].copy()  # near on the left: the strip the right imager misses is behind it
+    assert np.all(StereoNoise(**edges_only).apply(mirrored, 10.0, rng) > 0)
+    above = np.full((400, 8, 8), 9.0, dtype=np.float32)
+    above[:, 4:, :] = 2.0  # a horizontal edge: no parallax along a horizontal baseline
+    assert np.all(StereoNoise(**edges_only).apply(above, 10.0, rng) > 0)
+    # The training noise (sessions <= 34's model) erases both sides of every edge, the near one too.
+    both = StereoNoise(**edges_only, edge_holes="both")
+    holes = (both.apply(depth, 10.0, rng) == 0).mean(axis=(0, 1))
     assert holes[3] == pytest.approx(0.3, abs=0.05) and holes[4] == pytest.approx(0.3, abs=0.05)
     assert holes[0] == 0 and holes[7] == 0
+    assert (both.apply(above, 10.0, rng) == 0).mean(axis=(0, 2))[4] == pytest.approx(0.3, abs=0.05)
+    assert TRAINING_STEREO_NOISE == dataclasses.replace(StereoNoise(), edge_holes="both")
+    cfg, _ = resolve_configs({"preset": "flown-fast"}, {})
+    for scenario in (None, "random"):  # training worlds and the trainer's validations
+        assert make_sim_config(cfg, 1, scenario_name=scenario).camera_noise.edge_holes == "both"
+    with pytest.raises(ValueError, match="edge_holes"):
+        StereoNoise(edge_holes="left")
 
 
 def test_pitched_camera_and_nearest_object_match_reference():

@@ -456,6 +456,10 @@ D435_FOCAL_PX = 447.0
 D435_SUBPIXEL_PX = 0.08
 
 
+#: Where depth edges leave holes (:attr:`StereoNoise.edge_holes`).
+EDGE_HOLE_MODELS = ("shadow", "both")
+
+
 @dataclass(frozen=True)
 class StereoNoise:
     """A stereo depth camera's errors, reported the way the RealSense SDK reports them.
@@ -467,11 +471,21 @@ class StereoNoise:
     * beyond the range: a pixel whose true depth is ``max_range_m`` or more (sky, a far
       wall) is invalid, 0 — not a noisy far reading; nearer than ``min_range_m``: invalid too;
     * holes, all invalid (0): far pixels fail to match with probability
-      ``far_hole_prob * (z / max_range_m)^2``; pixels at a depth edge (a 4-neighbour more than
-      ``edge_jump_fraction`` of its depth farther or nearer: the occlusion shadow of stereo)
-      with ``edge_hole_prob``; any pixel with ``dropout_prob``; and with ``blob_prob`` per
-      frame one rectangular blob (a textureless or glaring patch) of 2 to ``blob_max_px``
-      pixels per side.
+      ``far_hole_prob * (z / max_range_m)^2``; pixels at a depth edge with ``edge_hole_prob``
+      (which pixels: ``edge_holes`` below); any pixel with ``dropout_prob``; and with
+      ``blob_prob`` per frame one rectangular blob (a textureless or glaring patch) of 2 to
+      ``blob_max_px`` pixels per side.
+
+    ``edge_holes`` says where depth edges leave holes. ``"shadow"`` (the default, what the
+    evaluation protocols fly) is the stereo occlusion shadow: the strip of farther surface
+    just *left* of a nearer one, which the right imager cannot see (RealSense depth is
+    referenced to the left imager; the baseline is horizontal, so only jumps along a row
+    cast one): a pixel whose right-hand neighbour is nearer by more than
+    ``edge_jump_fraction`` of that neighbour's depth. The nearer surface itself keeps its
+    depth: both imagers see it. ``"both"`` erases the pixels on both sides of every jump,
+    along rows and columns: the model of sessions <= 34, harsher than the sensor (it erases
+    the edges of a UAV, which at 2-4 pixels is all edge), kept as the recipes' training noise
+    (:data:`sitl.learn.config.TRAINING_STEREO_NOISE`; docs/simulator.md "Stereo noise").
 
     The output follows :data:`companion.spec.INVALID_DEPTH_M`: invalid pixels read exactly 0,
     which :func:`companion.observation.clean_depth` turns into ``max_range_m`` for the policy,
@@ -488,6 +502,11 @@ class StereoNoise:
     dropout_prob: float = 0.01
     blob_prob: float = 0.2
     blob_max_px: int = 6
+    edge_holes: str = "shadow"  # one of EDGE_HOLE_MODELS
+
+    def __post_init__(self) -> None:
+        if self.edge_holes not in EDGE_HOLE_MODELS:
+            raise ValueError(f"edge_holes must be one of {EDGE_HOLE_MODELS}, got {self.edge_holes!r}")
 
     @property
     def quadratic_coeff_per_m(self) -> float:
@@ -504,12 +523,17 @@ class StereoNoise:
         invalid |= rng.random(depth_m.shape, dtype=np.float32) < self.far_hole_prob * z * z + self.dropout_prob
         if self.edge_hole_prob > 0:
             edge = np.zeros(depth_m.shape, dtype=bool)
-            jump = np.abs(np.diff(depth_m, axis=-1)) > self.edge_jump_fraction * np.minimum(depth_m[..., 1:], depth_m[..., :-1])
-            edge[..., 1:] |= jump
-            edge[..., :-1] |= jump
-            jump = np.abs(np.diff(depth_m, axis=-2)) > self.edge_jump_fraction * np.minimum(depth_m[..., 1:, :], depth_m[..., :-1, :])
-            edge[..., 1:, :] |= jump
-            edge[..., :-1, :] |= jump
+            if self.edge_holes == "shadow":
+                # the pixel left of a nearer right-hand neighbour (the far side of the jump only)
+                left, right = depth_m[..., :-1], depth_m[..., 1:]
+                edge[..., :-1] = left - right > self.edge_jump_fraction * right
+            else:
+                jump = np.abs(np.diff(depth_m, axis=-1)) > self.edge_jump_fraction * np.minimum(depth_m[..., 1:], depth_m[..., :-1])
+                edge[..., 1:] |= jump
+                edge[..., :-1] |= jump
+                jump = np.abs(np.diff(depth_m, axis=-2)) > self.edge_jump_fraction * np.minimum(depth_m[..., 1:, :], depth_m[..., :-1, :])
+                edge[..., 1:, :] |= jump
+                edge[..., :-1, :] |= jump
             invalid |= edge & (rng.random(depth_m.shape, dtype=np.float32) < self.edge_hole_prob)
         if self.blob_prob > 0 and depth_m.ndim >= 2:
             height, width = depth_m.shape[-2:]
