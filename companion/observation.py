@@ -76,7 +76,7 @@ def default_max_invalid_fraction(camera: CameraSpec) -> float:
     A real stereo sensor (``min_range_m > 0``) reports the sky, the ground beyond its range
     and untextured patches as 0: measured with ``benchmarks/camera_model.py`` (D435 preset,
     noise, straight flights), frames are 70 % invalid on average below 3 m, more than 90 %
-    invalid in 99 % of frames above 6 m, and 100 % invalid in ~40 % of them — exactly what a
+    invalid in ~97 % of frames above 6 m, and 100 % invalid in ~40 % of them — exactly what a
     covered lens reads. No fraction separates the two there, so for a real sensor the
     default is 1.0: the check never trips in normal flight. docs/companion.md says when to
     set it (missions that stay within the sensor's range of a surface, e.g. below ~2.5 m).
