@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
 import pytest
 
 from companion.spec import CameraSpec
-from sitl.learn.config import TRAINING_STEREO_NOISE, make_sim_config, resolve_configs
 from sitl.sim.camera import DepthCamera, SceneGeometry, StereoNoise
 from tests.reference_camera import render_reference
 
@@ -149,10 +147,14 @@ def test_edge_holes_fall_in_the_occlusion_shadow_not_on_the_nearer_surface():
     assert holes[3] == pytest.approx(0.3, abs=0.05) and holes[4] == pytest.approx(0.3, abs=0.05)
     assert holes[0] == 0 and holes[7] == 0
     assert (both.apply(above, 10.0, rng) == 0).mean(axis=(0, 2))[4] == pytest.approx(0.3, abs=0.05)
-    assert TRAINING_STEREO_NOISE == dataclasses.replace(StereoNoise(), edge_holes="both")
-    cfg, _ = resolve_configs({"preset": "flown-fast"}, {})
-    for scenario in (None, "random"):  # training worlds and the trainer's validations
-        assert make_sim_config(cfg, 1, scenario_name=scenario).camera_noise.edge_holes == "both"
+    # The threshold is a quarter of the NEARER (right-hand) depth: 1.3 against 1.0 is an edge, and
+    # the hole is the far pixel's only.
+    step = np.full((400, 4, 2), 1.0, dtype=np.float32)
+    step[:, :, 0] = 1.3
+    holes = (StereoNoise(**edges_only).apply(step, 10.0, rng) == 0).mean(axis=(0, 1))
+    assert holes[0] == pytest.approx(0.3, abs=0.05) and holes[1] == 0
+    step[:, :, 0] = 1.24  # 24 % farther: no edge
+    assert np.all(StereoNoise(**edges_only).apply(step, 10.0, rng) > 0)
     with pytest.raises(ValueError, match="edge_holes"):
         StereoNoise(edge_holes="left")
 

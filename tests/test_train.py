@@ -500,6 +500,31 @@ def test_validations_fly_their_own_time_limit_and_record_it(tmp_path):
     assert rows[3]["random"]["success_rate"] == 0.0
 
 
+def test_training_flies_the_harsher_noise_and_records_it_evaluations_fly_the_occlusion_shadow(tmp_path):
+    """Training and the trainer's validations keep the noise every recipe was trained with (holes on both
+    sides of depth edges, TRAINING_STEREO_NOISE), and the policy file records it; the protocols fly
+    the sensor's occlusion shadow (StereoNoise's default)."""
+    import dataclasses
+
+    from companion.policy import load_policy
+    from sitl.eval.flown import flown_cells
+    from sitl.learn.config import TRAINING_STEREO_NOISE, make_sim_config, resolve_configs
+    from sitl.learn.trainer import make_trainer
+    from sitl.sim.camera import StereoNoise
+
+    assert TRAINING_STEREO_NOISE == dataclasses.replace(StereoNoise(), edge_holes="both")
+    assert all(cell.settings.noise_model.edge_holes == "shadow" for cell in flown_cells(1))
+    cfg, agent_cfg = resolve_configs(
+        {"camera": "realsense_d435", "camera_noise": True, "num_uavs": 2, "num_worlds": 2, "batch_size": 16,
+         "init_steps": 20, "total_updates": 2, "eval_every_updates": 2, "eval_episodes": 2,
+         "final_eval_episodes": 0, "max_episode_steps": 20}, {"hidden_dim": 32})
+    for scenario in (None, "random"):  # training worlds and the trainer's validations
+        assert make_sim_config(cfg, 1, scenario_name=scenario).camera_noise.edge_holes == "both"
+    make_trainer(cfg, agent_cfg, tmp_path / "run").run()
+    recorded = load_policy(tmp_path / "run" / "policy.pt").metadata["provenance"]["camera_noise_model"]
+    assert recorded == dataclasses.asdict(dataclasses.replace(TRAINING_STEREO_NOISE, min_range_m=0.2))
+
+
 def test_imitation_update_moves_the_actors_mean_and_its_convolutions_towards_the_teacher():
     """The distill method's update: the actor's mean action converges on the teacher's labels, and
     the convolutions (for SAC+AE the critic's alone) learn from that loss."""
