@@ -81,7 +81,9 @@ class TrainConfig:
     camera_grid: str = _param("", "WIDTHxHEIGHT in pixels instead of the camera preset's own grid (a real "
                                   "sensor's field of view min-pooled to more or fewer pixels, e.g. 48x32 for "
                                   "realsense_d435; empty: the preset's; docs/training.md 'The depth image's grid')")
-    camera_noise: bool = _param(False, "train with the stereo noise model (z^2 error, holes reported as 0)")
+    camera_noise: bool = _param(False, "train with the stereo noise model (z^2 error, holes reported as 0; at "
+                                        "depth edges on both sides, harsher than the occlusion shadow the "
+                                        "evaluations fly: TRAINING_STEREO_NOISE, docs/simulator.md)")
     mount_pitch_jitter_deg: float = _param(0.0, "camera mount pitch drawn per episode within +-deg of the mount")
     governor: bool = _param(False, "fly the companion's speed governor (companion.governor, default settings) after "
                                    "the policy in training, validation and the final choice; the exported policy.json "
