@@ -109,6 +109,22 @@ def test_three_uavs_fly_the_circle_over_mavlink_like_in_process(tmp_path):
     _assert_all_gone(out, ports, 3)
 
 
+def test_vehicles_that_start_airborne_fly_a_random_scene_without_a_takeoff(tmp_path):
+    """``--start airborne`` (the random scenes' only start): the companions engage hovering vehicles and fly."""
+    ports = _port_blocks(2)
+    out = tmp_path / "run"
+    proc = _start_swarm_test(out, 2, ports, "--scenario", "random", "--max-steps", "60")
+    stdout, stderr = proc.communicate(timeout=180)
+    assert proc.returncode == 0, stderr[-2000:]
+    records = json.loads((out / "metrics.json").read_text())["records"]
+    assert len(records) == 2 and all(r["path_ned"] for r in records)
+    for i in range(2):
+        events = [json.loads(line) for line in (out / "episodes" / "ep000" / f"companion_{i}.jsonl").read_text().splitlines()]
+        phases = [e["to"] for e in events if e.get("event") == "phase"]
+        assert "flying_to_goal" in phases and "taking_off" not in phases, phases
+    _assert_all_gone(out, ports, 2)
+
+
 def test_ctrl_c_stops_every_process_and_frees_the_ports(tmp_path):
     ports = _port_blocks(2)
     out = tmp_path / "run"

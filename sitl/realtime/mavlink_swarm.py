@@ -281,9 +281,10 @@ def fly_episode(sample: ScenarioSample, episode: int, settings: MavlinkSettings,
         for i, name in enumerate(names):
             args = [*companion_command(), "--connect", f"udpin:127.0.0.1:{settings.base_port + i}",
                     "--model", settings.policy_path, "--camera", f"sitl:{settings.depth_port + i}",
-                    "--log", str(folder / f"{name}.jsonl"), "--heartbeat-timeout", "60", "--arm"]
-            if settings.start == "ground":
-                args += ["--takeoff", f"{-sample.start_ned[i, 2]:.2f}"]
+                    "--log", str(folder / f"{name}.jsonl"), "--heartbeat-timeout", "60", "--arm",
+                    # the climb from the ground (the companion skips it for a vehicle already airborne,
+                    # --start airborne, but its command line asks for the altitude with every --arm)
+                    "--takeoff", f"{-sample.start_ned[i, 2]:.2f}"]
             if settings.governor:
                 args.append("--governor")
             groups.start(name, args, folder / f"{name}.out")
