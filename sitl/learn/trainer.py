@@ -644,8 +644,8 @@ class Trainer:
             "mount_pitch_jitter_deg": cfg.mount_pitch_jitter_deg, "avoid_counts_ground": cfg.avoid_counts_ground,
             "collision_reward": cfg.collision_reward, "uav_collision_extra_reward": cfg.uav_collision_extra_reward,
         }
-        if cfg.camera_noise:  # the noise's parameters, edge model included (docs/simulator.md "Stereo noise")
-            provenance["camera_noise_model"] = asdict(make_sim_config(cfg, 1).camera_noise)
+        if self.env.config.camera_noise is not None:  # the training worlds' noise, edge model included
+            provenance["camera_noise_model"] = asdict(self.env.config.camera_noise)
         if cfg.blind_motion_reward:  # not in the paper's reward
             provenance["blind_motion_reward"] = cfg.blind_motion_reward
         if cfg.corridor_speed_reward:  # not in the paper's reward either
