@@ -525,6 +525,22 @@ def test_training_flies_the_harsher_noise_and_records_it_evaluations_fly_the_occ
     assert recorded == dataclasses.asdict(dataclasses.replace(TRAINING_STEREO_NOISE, min_range_m=0.2))
 
 
+def test_camera_noise_edges_trains_and_validates_with_the_occlusion_shadow_and_refuses_an_unknown_model():
+    """``--camera-noise-edges shadow``: training worlds and validations fly the evaluations' edge holes,
+    the rest of the training noise unchanged; an unknown model is a one-line error, not a run."""
+    import dataclasses
+
+    from sitl.learn.config import TRAINING_STEREO_NOISE, make_sim_config, resolve_configs
+
+    values = {"camera": "realsense_d435", "camera_noise": True, "total_updates": 2}
+    cfg, _ = resolve_configs({**values, "camera_noise_edges": "shadow"}, {})
+    for scenario in (None, "random", "obstacles"):
+        noise = make_sim_config(cfg, 1, scenario_name=scenario).camera_noise
+        assert noise == dataclasses.replace(TRAINING_STEREO_NOISE, edge_holes="shadow", min_range_m=0.2)
+    with pytest.raises(ValueError, match="camera_noise_edges"):
+        resolve_configs({**values, "camera_noise_edges": "left"}, {})
+
+
 def test_imitation_update_moves_the_actors_mean_and_its_convolutions_towards_the_teacher():
     """The distill method's update: the actor's mean action converges on the teacher's labels, and
     the convolutions (for SAC+AE the critic's alone) learn from that loss."""

@@ -16,7 +16,7 @@ import torch
 from companion.spec import CAMERA_PRESETS, DEFAULT_TASK_SPEC, MAX_FRAME_STRIDE, CameraSpec, check_frame_ages
 from sitl.cli_args import MAX_THREADS
 from sitl.learn.agent import METHODS, AgentConfig
-from sitl.sim.camera import StereoNoise
+from sitl.sim.camera import EDGE_HOLE_MODELS, StereoNoise
 from sitl.sim.config import (CIRCLE_RADIUS_M, GEOMETRIES, LOW_FLOOR_BAND_M, OBSTACLE_SCENE_DENSITY,
                              TRAINING_SCENARIOS, RewardConfig, SimConfig, density_from_name, scenario_for)
 from sitl.sim.dynamics import KinematicRandomization
@@ -44,6 +44,12 @@ def _param(default, help: str):
 
 class DeviceUnavailable(ValueError):
     """A run's torch device is unknown or not on this machine (a run trained on cuda, resumed on a laptop)."""
+
+
+#: Where the training noise's depth edges leave holes (``StereoNoise.edge_holes``) unless ``--camera-noise-edges``
+#: says otherwise: both sides of every edge, harsher than the sensor's occlusion shadow. Every recipe and result
+#: so far was trained with it (docs/simulator.md "Stereo noise").
+TRAINING_EDGE_HOLES = "both"
 
 
 @dataclass(frozen=True)
@@ -84,6 +90,10 @@ class TrainConfig:
     camera_noise: bool = _param(False, "train with the stereo noise model (z^2 error, holes reported as 0; at "
                                         "depth edges on both sides, harsher than the occlusion shadow the "
                                         "evaluations fly: TRAINING_STEREO_NOISE, docs/simulator.md)")
+    camera_noise_edges: str = _param(TRAINING_EDGE_HOLES, "with --camera-noise: where depth edges leave holes, both (both sides "
+                                             "of every edge, rows and columns: every recipe so far) or shadow (the "
+                                             "stereo occlusion shadow the evaluations fly; docs/training.md "
+                                             "'Training with the occlusion shadow')")
     mount_pitch_jitter_deg: float = _param(0.0, "camera mount pitch drawn per episode within +-deg of the mount")
     governor: bool = _param(False, "fly the companion's speed governor (companion.governor, default settings) after "
                                    "the policy in training, validation and the final choice; the exported policy.json "
@@ -178,6 +188,9 @@ class TrainConfig:
             raise ValueError(f"circle_fraction must be in [0, 1], got {self.circle_fraction}")
         if not 0.0 <= self.obstacle_fraction <= 1.0 - self.circle_fraction:
             raise ValueError(f"obstacle_fraction must be in [0, 1 - circle_fraction], got {self.obstacle_fraction}")
+        if self.camera_noise_edges not in EDGE_HOLE_MODELS:
+            raise ValueError(f"unknown camera_noise_edges {self.camera_noise_edges!r}; "
+                             f"choose one of {', '.join(EDGE_HOLE_MODELS)}")
         if self.geometry not in GEOMETRIES:
             raise ValueError(f"unknown geometry {self.geometry!r}; choose one of {', '.join(GEOMETRIES)}")
         # The scenario checks low_floor_fraction (its range, and a floor drawn per episode): here, so a
@@ -267,10 +280,10 @@ TRAIN_INT_RANGES = (
 )
 
 #: The camera noise of training and of the trainer's own validations (``--camera-noise``): the sensor's
-#: (:class:`sitl.sim.camera.StereoNoise`) with holes on both sides of every depth edge, harsher than the
-#: occlusion shadow the evaluations fly. Every recipe and result so far was trained with it; it stays so
-#: that they reproduce (docs/simulator.md "Stereo noise").
-TRAINING_STEREO_NOISE = StereoNoise(edge_holes="both")
+#: (:class:`sitl.sim.camera.StereoNoise`) with the edge holes of ``--camera-noise-edges`` (by default on both
+#: sides of every depth edge, harsher than the occlusion shadow the evaluations fly; it stays so that every
+#: recipe reproduces; docs/simulator.md "Stereo noise").
+TRAINING_STEREO_NOISE = StereoNoise(edge_holes=TRAINING_EDGE_HOLES)
 
 #: Settings that say where a run computes, not what it learns: the only ones `--resume` may change
 #: (a run started on a GPU machine can be continued on a laptop).
@@ -455,7 +468,8 @@ def make_sim_config(cfg: TrainConfig, num_worlds: int, record_paths: bool = Fals
     randomization = KinematicRandomization() if cfg.randomize_dynamics and training else None
     return SimConfig(num_uavs=cfg.num_uavs, num_worlds=num_worlds, scenario=scenario, camera=camera,
                      dynamics_randomization=randomization,
-                     camera_noise=dataclasses.replace(TRAINING_STEREO_NOISE, min_range_m=camera.min_range_m)
+                     camera_noise=dataclasses.replace(TRAINING_STEREO_NOISE, min_range_m=camera.min_range_m,
+                                                      edge_holes=cfg.camera_noise_edges)
                      if cfg.camera_noise else None,
                      mount_pitch_jitter_deg=cfg.mount_pitch_jitter_deg if training else 0.0,
                      max_episode_steps=cfg.max_episode_steps, record_paths=record_paths,
