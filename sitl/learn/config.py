@@ -88,7 +88,7 @@ class TrainConfig:
                                   "sensor's field of view min-pooled to more or fewer pixels, e.g. 48x32 for "
                                   "realsense_d435; empty: the preset's; docs/training.md 'The depth image's grid')")
     camera_noise: bool = _param(False, "train with the stereo noise model (z^2 error, holes reported as 0; "
-                                        "depth-edge holes as --camera-noise-edges says: TRAINING_STEREO_NOISE, "
+                                        "edge holes where the camera_noise_edges setting says: TRAINING_STEREO_NOISE, "
                                         "docs/simulator.md)")
     camera_noise_edges: str = _param(TRAINING_EDGE_HOLES, "with --camera-noise: where depth edges leave holes, both (both sides "
                                              "of every edge, rows and columns: every recipe so far) or shadow (the "
