@@ -167,6 +167,39 @@ def test_orca_fov_avoids_only_the_uavs_its_camera_covers():
     assert np.linalg.norm(behind_fov[2] - pref[2]) > 0.01  # UAV 2 sees UAV 0 ahead and (expecting help) slows a little
 
 
+def test_keep_right_turns_only_towards_uavs_ahead_that_close_in():
+    """The right-of-way rule turns the preferred velocity right (NED: north -> east) for a UAV closing in
+    ahead, and leaves it alone for one ahead that flies away, one behind, or one not known."""
+    from sitl.eval.orca import keep_right
+
+    pos = np.array([[0.0, 0.0, -5.0], [5.0, 0.0, -5.0]])
+    pref = np.array([[2.0, 0.0, 0.0], [-2.0, 0.0, 0.0]])
+    known = np.ones((2, 2), dtype=bool)
+    angle = math.radians(40.0)
+    head_on = keep_right(pref, pos, np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]]), known, angle)
+    np.testing.assert_allclose(head_on[0], [2 * math.cos(angle), 2 * math.sin(angle), 0.0], atol=1e-9)  # veers east
+    np.testing.assert_allclose(head_on[1], [-2 * math.cos(angle), -2 * math.sin(angle), 0.0], atol=1e-9)  # its right: west
+    apart = keep_right(pref, pos, np.array([[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]), known, angle)
+    np.testing.assert_allclose(apart, pref)  # opening: no conflict
+    unknown = keep_right(pref, pos, np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]]), ~known, angle)
+    np.testing.assert_allclose(unknown, pref)  # out of view: no conflict
+    same_way = keep_right(np.array([[2.0, 0.0, 0.0], [2.0, 0.0, 0.0]]), pos,
+                          np.array([[2.0, 0.0, 0.0], [1.0, 0.0, 0.0]]), known, angle)
+    assert same_way[0, 1] > 0 and same_way[1, 1] == 0  # UAV 0 closes on UAV 1 ahead; UAV 1 has it behind
+
+
+@needs_rvo
+def test_orca_fov_right_flies_the_circle_that_orca_fov_does_not():
+    """Eight UAVs on a 10 m circle, each camera-limited: plain orca-fov collides in the centre in some
+    episodes, the right-of-way rule makes them all arrive (a roundabout)."""
+    settings = EvalSettings(scenario=ScenarioConfig(name="circle", circle_radius_m=10.0, circle_jitter_m=0.5),
+                            num_uavs=8, episodes=6, camera="realsense_d435")
+    plain = evaluate_method(resolve_method("orca-fov"), settings, progress=False).summary
+    right = evaluate_method(resolve_method("orca-fov-right"), settings, progress=False).summary
+    assert right["success_rate"] == 1.0
+    assert plain["success_rate"] < 0.9
+
+
 def _orca_pole_run(see_obstacles: bool) -> tuple[str, float]:
     """One UAV flying ORCA to its goal 10 m north, through a 0.2 m pole: its outcome and closest approach."""
     from sitl.eval.orca import orca_actor

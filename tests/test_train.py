@@ -481,6 +481,32 @@ def test_trainer_labels_with_privileged_orca_outside_circle_worlds_and_the_weigh
     assert np.abs(labels).max() <= 1.0 and labels[:, 0].max() > 0  # unit actions; ORCA flies forward
 
 
+def test_the_circle_teacher_labels_circle_worlds_with_orca_that_keeps_right_of_what_it_sees(tmp_path):
+    """``circle_teacher_right``: circle worlds are labelled too, by the camera-limited right-of-way ORCA
+    (its commands, not privileged ORCA's), and the other worlds keep privileged ORCA's labels."""
+    from sitl.eval.orca import RIGHT_HAND_PARAMS
+    from sitl.learn.config import PRESETS, resolve_configs
+    from sitl.learn.trainer import make_trainer
+
+    cfg, agent_cfg = resolve_configs(
+        {**PRESETS["flown"]["train"], "preset": "flown", "scenario": "mixed", "circle_fraction": 0.5,
+         "obstacle_fraction": 0.5, "num_worlds": 4, "total_updates": 4, "init_steps": 60, "batch_size": 16,
+         "eval_every_updates": 0, "final_eval_episodes": 0, "teacher_bc_weight": 1.0, "circle_teacher_right": True},
+        {"hidden_dim": 32})
+    trainer = make_trainer(cfg, agent_cfg, tmp_path)
+    trainer.run()
+    assert trainer.buffer.teacher_valid[:trainer.buffer.size].min() == 1.0  # every world labelled
+    env = trainer.env
+    assert trainer.circle_teacher.camera is not None and trainer.circle_teacher.params == RIGHT_HAND_PARAMS
+    assert env.world_is_circle.any() and not env.world_is_circle.all()  # this seed flies both kinds now
+    circle = np.repeat(env.world_is_circle, env.uavs_per_world) & env.acting
+    commands = trainer.teacher_commands()
+    np.testing.assert_allclose(commands[circle], trainer.circle_teacher.act_env(env, acting=circle)[circle])
+    np.testing.assert_allclose(commands[~circle], trainer.teacher.act_env(env)[~circle])
+    with pytest.raises(ValueError, match="circle_teacher_right needs a teacher"):
+        resolve_configs({"circle_teacher_right": True}, {})
+
+
 def test_validations_fly_their_own_time_limit_and_record_it(tmp_path):
     """``validation_steps``: the training episodes keep theirs; each validation row says which it flew."""
     from sitl.learn.config import resolve_configs

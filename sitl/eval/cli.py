@@ -13,8 +13,9 @@ per-UAV record into an output folder::
 Controllers (``--policy``): a policy file (TorchScript, see docs/policy_file.md; it sees
 only its depth camera, goal and own velocity), ``straight`` (flies straight at its goal:
 what a scenario gives for free), ``orca`` (ORCA in 3D with perfect knowledge of every
-UAV: the privileged classical reference, :mod:`sitl.eval.orca`) or ``orca-fov`` (the same
-ORCA knowing only the UAVs inside its own camera's view: what the field of view allows).
+UAV: the privileged classical reference, :mod:`sitl.eval.orca`), ``orca-fov`` (the same
+ORCA knowing only the UAVs inside its own camera's view: what the field of view allows) or
+``orca-fov-right`` (orca-fov keeping right of the UAVs it sees closing in: a right-of-way convention).
 
 ``--mavlink`` flies the same episodes with the whole product instead: the SITL vehicles
 (``sitl.vehicle``) and one real ``companion`` process per UAV, in real time over MAVLink

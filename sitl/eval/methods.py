@@ -1,6 +1,6 @@
 """What flies the swarm in an evaluation: a policy file or a reference controller, as a :class:`Method`.
 
-``resolve_method("straight" | "orca" | "orca-fov" | PATH)`` loads and checks it; ``Method.make_actor(env)``
+``resolve_method("straight" | "orca" | "orca-fov" | "orca-fov-right" | PATH)`` loads and checks it; ``Method.make_actor(env)``
 builds its :data:`sitl.sim.episodes.Actor` for one environment.
 """
 
@@ -21,9 +21,10 @@ from sitl.sim.episodes import Actor, ActorFactory, governed_actor
 DEFAULT_POLICY = Path("models/policy.pt")
 
 
-BASELINES = ("straight", "orca", "orca-fov")
-#: The ORCA references (sitl.eval.orca): all UAVs known, or only those in the camera's view.
-ORCA_BASELINES = ("orca", "orca-fov")
+BASELINES = ("straight", "orca", "orca-fov", "orca-fov-right")
+#: The ORCA references (sitl.eval.orca): all UAVs known, or only those in the camera's view (and
+#: keeping right when one of them closes in).
+ORCA_BASELINES = ("orca", "orca-fov", "orca-fov-right")
 #: Appended to a controller's label when the speed governor follows it.
 GOVERNED_SUFFIX = "+governor"
 
@@ -54,9 +55,10 @@ class Method:
             out |= {"path": self.path, "sha256": file_digest(self.path),
                     "camera": self.camera.to_dict() if self.camera else None, "provenance": self.provenance}
         if self.kind == "baseline" and self.label in ORCA_BASELINES:
-            from sitl.eval.orca import OrcaParams
+            from sitl.eval.orca import baseline_orca
 
-            out["orca"] = dataclasses.asdict(OrcaParams()) | {"sees_obstacles": self.label == "orca"}
+            params, _, sees_obstacles = baseline_orca(self.label)
+            out["orca"] = dataclasses.asdict(params) | {"sees_obstacles": sees_obstacles}
         return out
 
     def make_actor(self, env: SwarmEnv) -> Actor:
@@ -85,10 +87,11 @@ class Method:
 
             return straight_actor(env)
         if self.kind == "baseline" and name in ORCA_BASELINES:
-            from sitl.eval.orca import orca_actor
+            from sitl.eval.orca import baseline_orca, orca_actor
 
-            # Privileged ORCA knows the obstacles too; the camera-limited one only the UAVs it sees.
-            return orca_actor(env, camera_limited=name == "orca-fov", see_obstacles=name == "orca")
+            # Privileged ORCA knows the obstacles too; the camera-limited ones only the UAVs they see.
+            params, camera_limited, see_obstacles = baseline_orca(name)
+            return orca_actor(env, params, camera_limited=camera_limited, see_obstacles=see_obstacles)
         return policy_actor(self._policy)(env)
 
 
@@ -147,12 +150,13 @@ def file_digest(path: str | Path) -> str:
 def missing_policy_message(path: str | Path) -> str:
     return (f"policy file {path} not found. Train one (python -m sitl.train, which writes RUN_DIR/policy.pt, "
             f"then copy it to {DEFAULT_POLICY}) or choose another controller: --policy straight (no avoidance), "
-            "--policy orca (privileged ORCA), --policy orca-fov (ORCA knowing only the UAVs in its camera's view) "
+            "--policy orca (privileged ORCA), --policy orca-fov (ORCA knowing only the UAVs in its camera's view), "
+            "--policy orca-fov-right (orca-fov keeping right of the UAVs it sees closing in) "
             "or --policy PATH (a policy file)")
 
 
 def resolve_method(spec: str | Path) -> Method:
-    """``straight``, ``orca``, ``orca-fov`` or a policy file (loaded and validated) as a :class:`Method`."""
+    """``straight``, ``orca``, ``orca-fov``, ``orca-fov-right`` or a policy file (loaded and validated) as a :class:`Method`."""
     if str(spec) in BASELINES:
         if str(spec) in ORCA_BASELINES:
             from sitl.eval.orca import _import_rvo

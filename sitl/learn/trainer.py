@@ -259,12 +259,16 @@ class Trainer:
         #: privileged ORCA (it sees every UAV and the obstacles) labels the actions: teacher-guided SAC+AE
         #: (``teacher_bc_weight`` > 0) or the ``distill`` method
         self.teacher = None
+        #: ``circle_teacher_right``: the circle worlds' teacher (camera-limited ORCA keeping right)
+        self.circle_teacher = None
         self.distill = agent_cfg.method == "distill"
         if cfg.teacher_bc_weight > 0 or self.distill:
-            from sitl.eval.orca import OrcaController
+            from sitl.eval.orca import RIGHT_HAND_PARAMS, OrcaController
 
             try:
                 self.teacher = OrcaController.for_env(env, see_obstacles=True)
+                if cfg.circle_teacher_right:
+                    self.circle_teacher = OrcaController.for_env(env, RIGHT_HAND_PARAMS, camera_limited=True)
             except ImportError as err:  # the binding has wheels for Linux x86_64 only
                 flag = "--method distill" if self.distill else "--teacher-bc-weight"
                 raise ValueError(f"{flag}: {err}") from None
@@ -412,17 +416,24 @@ class Trainer:
         """The teacher's physical commands [M, 3] for every UAV now; None once the teacher's weight is 0."""
         if self.teacher is None or self.teacher_weight() <= 0:
             return None
-        return self.teacher.act_env(self.env)
+        commands = self.teacher.act_env(self.env)
+        if self.circle_teacher is not None:
+            env = self.env
+            circle = np.repeat(env.world_is_circle, env.uavs_per_world) & env.acting
+            if circle.any():
+                commands[circle] = self.circle_teacher.act_env(env, acting=circle)[circle]
+        return commands
 
     def teacher_labels(self, rows: np.ndarray, commands: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray | None]:
         """The teacher's unit actions for the acting ``rows`` and where they hold: everywhere for
-        ``distill``, else outside circle worlds (teacher-guided SAC: ORCA's circle manoeuvre depends on UAVs
-        the camera does not see, and the student imitating it failed the circle, docs/training.md)."""
+        ``distill`` or with the circle teacher, else outside circle worlds (teacher-guided SAC: privileged ORCA's
+        circle manoeuvre depends on UAVs the camera does not see, and the student imitating it failed the
+        circle, docs/training.md)."""
         if commands is None:
             return None, None
         env = self.env
         action = self.agent.to_unit_action(commands[rows])
-        if self.distill:
+        if self.distill or self.circle_teacher is not None:
             return action, np.ones(len(rows), dtype=bool)
         return action, ~np.repeat(env.world_is_circle, env.uavs_per_world)[rows]
 
@@ -658,11 +669,15 @@ class Trainer:
             provenance["privileged_critic"] = {"neighbours": PRIVILEGED_NEIGHBOURS, "obstacle_point": True,
                                                "altitude": True, "module": "sitl.learn.privileged"}
         if cfg.teacher_bc_weight > 0:  # teacher-guided SAC+AE: not the paper's method alone
-            provenance["teacher"] = {"kind": "orca (privileged, sees obstacles; circle worlds unlabelled)",
+            outside = "circle worlds: see circle_worlds" if self.circle_teacher is not None else "circle worlds unlabelled"
+            provenance["teacher"] = {"kind": f"orca (privileged, sees obstacles; {outside})",
                                      "bc_weight": cfg.teacher_bc_weight, "bc_updates": cfg.teacher_bc_updates}
         if self.distill:  # not reinforcement learning: a student of privileged ORCA
             provenance["teacher"] = {"kind": "orca (privileged, sees obstacles)", "dagger_beta_updates":
                                      cfg.dagger_beta_updates, "module": "sitl.eval.orca"}
+        if self.circle_teacher is not None:  # circle worlds: the view-limited right-of-way ORCA
+            provenance["teacher"]["circle_worlds"] = {"kind": "orca-fov-right (knows the UAVs in view, keeps right)",
+                                                      "orca": asdict(self.circle_teacher.params)}
         if selected is not None:
             provenance["selected_snapshot"] = selected  # trained for wall_time_s; these networks are from here
         if cfg.init_from:
