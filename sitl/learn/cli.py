@@ -21,9 +21,10 @@ Presets (``--preset``):
   seed 0 (docs/training.md, models/README.md).
 * ``flown-distill`` — flown-fast's four stages, the first two as the ``distill`` method (a DAgger
   student of privileged ORCA, four times the data per update), the last two as SAC on the student's
-  frozen convolutions, still pulled towards ORCA outside circles and validated at 40 s: 38-39 min on
-  2 cores, three seeds' paper medium 0.909 within 2.2 points (a method beside SAC+AE, issue 17;
-  docs/training.md "From the distilled student to SAC").
+  frozen convolutions, still pulled towards the teacher and validated at 40 s; circle worlds are
+  taught by camera-limited ORCA that keeps right (``--circle-teacher-right``): four seeds' paper
+  medium 0.905 within 1.4 points, every circle of 8 at 1.000 (a method beside SAC+AE, issue 17;
+  docs/training.md "A circle teacher the camera can explain").
 * ``bundle-paper`` — a recipe: the paper-camera policy's four-stage curriculum.
 
 Everything is a command-line flag (``--help``); a run directory holds ``config.json``,
