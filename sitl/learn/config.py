@@ -409,9 +409,10 @@ PRESETS["flown-fast"]["stages"] = tuple(
 # method with four times the labelled transitions per update (the data gained 2-4 points in session 32);
 # stages 3-4 are flown-fast's as SAC on the student's convolutions, frozen (its features stay what the actor
 # head was trained on; no decoder), the critic learning the handed-over policy for 1,000 updates before the
-# actor moves, and the teacher's pull (weight 1, outside circle worlds) kept in the actor loss: in a trial at
+# actor moves, and the teacher's pull (weight 1; in circle worlds the keep-right teacher) kept in the actor loss: in a trial at
 # 2 % of the updates, an actor free of both collapsed to 0 success within 30 updates of a cold critic.
-# Reinforcement learning is what taught SAC+AE the circle, where imitating privileged ORCA failed.
+# Reinforcement learning is what taught SAC+AE the circle, where imitating privileged ORCA failed; since
+# session 39 circle worlds are taught by camera-limited ORCA keeping right, which the camera can explain.
 # Stages 3-4 validate with the protocol's 40 s limit, so the circle's score is a score (at 20 s a circle of
 # 20 m radius times out after any detour), and the final choice takes stage 4's best validated snapshot
 # without flying candidates again (that rescoring cost ~5 of 45 minutes).
@@ -430,13 +431,13 @@ PRESETS["flown-distill"] = {
                     for stage in PRESETS["flown-fast"]["stages"][:2]) + (
         dataclasses.replace(PRESETS["flown-fast"]["stages"][2], name="reinforce",
                             description="SAC on the student's frozen convolutions, the critic first: "
-                                        "the same mix, actor at 3e-4 pulled towards ORCA outside circles, "
+                                        "the same mix, actor at 3e-4 pulled towards the teachers, "
                                         "a UAV-UAV collision at -50",
                             train={**PRESETS["flown-fast"]["stages"][2].train, **_REINFORCE},
                             agent={"method": "cnn", "freeze_convs": True, "actor_delay_updates": 1_000,
                                    "actor_lr": 3e-4, "critic_lr": 1e-3}),
         dataclasses.replace(PRESETS["flown-fast"]["stages"][3],
-                            description="SAC on the frozen convolutions, pulled towards ORCA outside circles: "
+                            description="SAC on the frozen convolutions, pulled towards the teachers: "
                                         "50 % circles at 1e-4, a UAV-UAV collision at -50",
                             train={**PRESETS["flown-fast"]["stages"][3].train, **_REINFORCE},
                             agent={**PRESETS["flown-fast"]["stages"][3].agent, "method": "cnn", "freeze_convs": True}),
