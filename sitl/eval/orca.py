@@ -29,7 +29,7 @@ its pixels: the gap between ``orca`` and ``orca-fov`` is what the field of view 
 UAV in view is ahead and closing, the preferred velocity turns to the right. In a circle every UAV meets the
 others head-on at once, a symmetric meeting that plain ORCA only resolves with reciprocity the camera cannot
 give; with the rule every UAV veers the same way and the swarm flies a roundabout. The rule is a function of
-the view, so a camera policy can imitate it (the ``--circle-teacher`` of :mod:`sitl.learn.config`).
+the view, so a camera policy can imitate it (``python -m sitl.train --circle-teacher-right``).
 """
 
 from __future__ import annotations
