@@ -416,12 +416,14 @@ class Trainer:
         """The teacher's physical commands [M, 3] for every UAV now; None once the teacher's weight is 0."""
         if self.teacher is None or self.teacher_weight() <= 0:
             return None
-        commands = self.teacher.act_env(self.env)
-        if self.circle_teacher is not None:
-            env = self.env
-            circle = np.repeat(env.world_is_circle, env.uavs_per_world) & env.acting
-            if circle.any():
-                commands[circle] = self.circle_teacher.act_env(env, acting=circle)[circle]
+        env = self.env
+        if self.circle_teacher is None:
+            return self.teacher.act_env(env)
+        # Each world solved by one teacher only: privileged ORCA outside circle worlds, the circle teacher in them.
+        circle = np.repeat(env.world_is_circle, env.uavs_per_world) & env.acting
+        commands = self.teacher.act_env(env, acting=env.acting & ~circle)
+        if circle.any():
+            commands[circle] = self.circle_teacher.act_env(env, acting=circle)[circle]
         return commands
 
     def teacher_labels(self, rows: np.ndarray, commands: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray | None]:
