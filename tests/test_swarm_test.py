@@ -200,13 +200,13 @@ def test_orca_fov_right_flies_the_circle_that_orca_fov_does_not():
     assert plain["success_rate"] < 0.9
 
 
-def _orca_pole_run(see_obstacles: bool) -> tuple[str, float]:
+def _orca_pole_run(see_obstacles: bool, camera_limited: bool = False) -> tuple[str, float]:
     """One UAV flying ORCA to its goal 10 m north, through a 0.2 m pole: its outcome and closest approach."""
     from sitl.eval.orca import orca_actor
     from tests.sim_helpers import pole_world
 
     env, obs = pole_world(pole_east_m=0.05)  # exactly head-on is degenerate for RVO2-3D
-    act = orca_actor(env, see_obstacles=see_obstacles)
+    act = orca_actor(env, camera_limited=camera_limited, see_obstacles=see_obstacles)
     closest = math.inf
     for _ in range(300):
         obs, _, term, trunc, _ = env.step(act(obs))
@@ -222,6 +222,15 @@ def test_orca_that_sees_obstacles_flies_round_a_pole_the_plain_one_hits():
     assert _orca_pole_run(see_obstacles=False)[0] == "collision_obstacle"
     outcome, closest = _orca_pole_run(see_obstacles=True)
     assert outcome == "arrived" and closest > 0.2 + 0.3  # never touched: the pole's radius plus R
+
+
+@needs_rvo
+def test_camera_limited_orca_that_sees_obstacles_flies_round_a_pole_too():
+    """``--teacher-camera-limited``'s teacher: orca-fov (each UAV solved alone, knowing the UAVs in view)
+    with its own nearest obstacle point loaded."""
+    assert _orca_pole_run(see_obstacles=False, camera_limited=True)[0] == "collision_obstacle"
+    outcome, closest = _orca_pole_run(see_obstacles=True, camera_limited=True)
+    assert outcome == "arrived" and closest > 0.2 + 0.3
 
 
 @needs_rvo

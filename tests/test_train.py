@@ -507,6 +507,29 @@ def test_the_circle_teacher_labels_circle_worlds_with_orca_that_keeps_right_of_w
         resolve_configs({"circle_teacher_right": True}, {})
 
 
+def test_a_camera_limited_teacher_labels_the_other_worlds_with_what_each_uav_sees(tmp_path):
+    """``teacher_camera_limited``: the worlds other than circles are labelled by orca-fov that sees the
+    obstacles (each UAV knows only the UAVs in its camera's view), and the provenance says so."""
+    from sitl.learn.config import PRESETS, resolve_configs
+    from sitl.learn.trainer import make_trainer
+
+    cfg, agent_cfg = resolve_configs(
+        {**PRESETS["flown"]["train"], "preset": "flown", "scenario": "mixed", "circle_fraction": 0.0,
+         "obstacle_fraction": 0.5, "num_worlds": 4, "total_updates": 4, "init_steps": 60, "batch_size": 16,
+         "eval_every_updates": 0, "final_eval_episodes": 0, "teacher_bc_weight": 1.0, "teacher_camera_limited": True},
+        {"hidden_dim": 32})
+    trainer = make_trainer(cfg, agent_cfg, tmp_path)
+    trainer.run()
+    teacher, env = trainer.teacher, trainer.env
+    assert teacher.camera is not None and teacher.see_obstacles
+    assert trainer.buffer.teacher_valid[:trainer.buffer.size].min() == 1.0  # no circle worlds: every row labelled
+    np.testing.assert_allclose(trainer.teacher_commands(), teacher.act_env(env))  # this step's labels
+    labels = trainer.buffer.teacher_action[:trainer.buffer.size]
+    assert np.abs(labels).max() <= 1.0 and labels[:, 0].max() > 0  # unit actions; ORCA flies forward
+    with pytest.raises(ValueError, match="teacher_camera_limited needs a teacher"):
+        resolve_configs({"teacher_camera_limited": True}, {})
+
+
 def test_validations_fly_their_own_time_limit_and_record_it(tmp_path):
     """``validation_steps``: the training episodes keep theirs; each validation row says which it flew."""
     from sitl.learn.config import resolve_configs

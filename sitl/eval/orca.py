@@ -171,9 +171,8 @@ class OrcaController:
                  see_obstacles: bool = False) -> None:
         """``camera``: avoid only the UAVs inside this camera's frustum (``orca-fov``); None: all of them.
         ``see_obstacles``: also avoid the static obstacles (boxes, poles), each UAV's nearest obstacle
-        point standing in its world as a static agent (not with ``camera``)."""
-        if see_obstacles and camera is not None:
-            raise ValueError("ORCA sees the obstacles only with full knowledge (camera=None)")
+        point standing in its world as a static agent (with ``camera`` too: a UAV flies forward, so the
+        nearest point matters where it lies ahead, where the camera shows it)."""
         rvo = _import_rvo()
         self.params, self.spec, self.camera, self.see_obstacles = params, spec, camera, see_obstacles
         self.n = uavs_per_world
@@ -265,6 +264,8 @@ class OrcaController:
                 known = seen[i] & present[rows]
                 known[i] = True
                 self._load(sim, b, pos_ned, vel, pref, known)
+                if self.see_obstacles:  # its own nearest obstacle point only (the others' are parked)
+                    self._load_obstacle_points(sim, pos_ned[rows], obstacle_points_ned[rows], np.arange(n) == i)
                 sim.doStep()
                 out[b * n + i] = sim.getAgentVelocity(int(i))
         return out

@@ -165,6 +165,10 @@ class TrainConfig:
                                         "right of those closing in (a convention the camera can explain, "
                                         "sitl.eval.orca.RIGHT_HAND_PARAMS) instead of privileged ORCA (distill) or "
                                         "no label (SAC's teacher pull)")
+    teacher_camera_limited: bool = _param(False, "with a teacher (distill, teacher_bc_weight): the worlds other than "
+                                          "circles are labelled by ORCA that knows only the UAVs in each UAV's camera "
+                                          "view (orca-fov; it still sees the obstacles) instead of privileged ORCA "
+                                          "that knows every UAV")
     teacher_bc_updates: int = _param(0, "the teacher's weight falls linearly to 0 over this many updates, counted "
                                         "from the first stage of a recipe (0: it stays constant)")
     dagger_beta_updates: int = _param(4_000, "distill method: the share of UAVs flying the teacher's command instead "
@@ -246,6 +250,8 @@ class TrainConfig:
             raise ValueError(f"teacher_bc_weight must be in [0, 100], got {self.teacher_bc_weight}")
         if self.circle_teacher_right and self.method != "distill" and self.teacher_bc_weight <= 0:
             raise ValueError("circle_teacher_right needs a teacher: the distill method or teacher_bc_weight > 0")
+        if self.teacher_camera_limited and self.method != "distill" and self.teacher_bc_weight <= 0:
+            raise ValueError("teacher_camera_limited needs a teacher: the distill method or teacher_bc_weight > 0")
         if self.method == "distill" and self.teacher_bc_weight > 0:
             raise ValueError("teacher_bc_weight is SAC's behaviour-cloning term; the distill method is all teacher already")
         if not 0.0 < self.checkpoint_every_s < math.inf:

@@ -266,7 +266,7 @@ class Trainer:
             from sitl.eval.orca import RIGHT_HAND_PARAMS, OrcaController
 
             try:
-                self.teacher = OrcaController.for_env(env, see_obstacles=True)
+                self.teacher = OrcaController.for_env(env, camera_limited=cfg.teacher_camera_limited, see_obstacles=True)
                 if cfg.circle_teacher_right:
                     self.circle_teacher = OrcaController.for_env(env, RIGHT_HAND_PARAMS, camera_limited=True)
             except ImportError as err:  # the binding has wheels for Linux x86_64 only
@@ -670,12 +670,13 @@ class Trainer:
         if self.agent_cfg.privileged_critic:  # asymmetric actor-critic: not the paper's critic
             provenance["privileged_critic"] = {"neighbours": PRIVILEGED_NEIGHBOURS, "obstacle_point": True,
                                                "altitude": True, "module": "sitl.learn.privileged"}
+        knows = "knows the UAVs in view" if cfg.teacher_camera_limited else "privileged"
         if cfg.teacher_bc_weight > 0:  # teacher-guided SAC+AE: not the paper's method alone
             outside = "circle worlds: see circle_worlds" if self.circle_teacher is not None else "circle worlds unlabelled"
-            provenance["teacher"] = {"kind": f"orca (privileged, sees obstacles; {outside})",
+            provenance["teacher"] = {"kind": f"orca ({knows}, sees obstacles; {outside})",
                                      "bc_weight": cfg.teacher_bc_weight, "bc_updates": cfg.teacher_bc_updates}
         if self.distill:  # not reinforcement learning: a student of privileged ORCA
-            provenance["teacher"] = {"kind": "orca (privileged, sees obstacles)", "dagger_beta_updates":
+            provenance["teacher"] = {"kind": f"orca ({knows}, sees obstacles)", "dagger_beta_updates":
                                      cfg.dagger_beta_updates, "module": "sitl.eval.orca"}
         if self.circle_teacher is not None:  # circle worlds: the view-limited right-of-way ORCA
             provenance["teacher"]["circle_worlds"] = {"kind": "orca-fov-right (knows the UAVs in view, keeps right)",
