@@ -25,7 +25,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from companion.flightlog import DEFAULT_LOG_KEEP, DEFAULT_LOG_MAX_MB
-from companion.governor import GovernorSpec
+from companion.governor import DEFAULT_GOVERNOR, GOVERNOR_PRESETS, GovernorSpec
 from companion.recording import DEFAULT_RECORD_KEEP, DEFAULT_RECORD_MAX_MB
 from companion.spec import (
     DEFAULT_ACTION_SPEC,
@@ -234,13 +234,16 @@ def build_parser() -> argparse.ArgumentParser:
     flight.add_argument("--obstacle-distance", action=argparse.BooleanOptionalAction, default=True,
                         help="publish MAVLink OBSTACLE_DISTANCE (72 bins, body FRD) from every depth frame, for the "
                              "autopilot's own collision prevention (default on; docs/companion.md)")
-    flight.add_argument("--governor", action="store_true",
+    flight.add_argument("--governor", nargs="?", const=DEFAULT_GOVERNOR, default=None, choices=list(GOVERNOR_PRESETS),
+                        metavar="{" + ",".join(GOVERNOR_PRESETS) + "}",
                         help="speed governor after the policy: cap the forward speed so the vehicle stops "
                              f"{GovernorSpec().stop_distance_m:g} m before the nearest depth point in a "
                              f"+-{GovernorSpec().corridor_half_width_m:g} m corridor ahead, and turn towards the freer "
-                             "side until the way is clear (PX4's collision prevention does nothing in Offboard; default "
-                             "off: it costs dense converging traffic, docs/companion.md). A policy trained with the "
-                             "governor (policy.json 'governor') always flies with it, with the file's settings")
+                             f"side until the way is clear ({DEFAULT_GOVERNOR}, the default with --governor alone); "
+                             f"swarm: stop {GOVERNOR_PRESETS['swarm'].stop_distance_m:g} m short and never turn, for "
+                             "policies that turn by themselves in dense traffic (PX4's collision prevention does nothing "
+                             "in Offboard; default off: docs/companion.md). A policy trained with the governor "
+                             "(policy.json 'governor') always flies with it, with the file's settings")
     output = parser.add_argument_group("output")
     output.add_argument("--log", type=_output_file, default="-", metavar="PATH",
                         help="JSON-lines log of every control step and event (default '-': stdout)")
@@ -403,7 +406,7 @@ def _fly(args: argparse.Namespace, log) -> int:
                                  timeout_s=args.timeout, link_timeout_s=args.link_timeout,
                                  stream_rate_hz=args.stream_rate, camera_sync=not args.no_camera_sync,
                                  obstacle_distance=args.obstacle_distance,
-                                 governor=GovernorSpec() if args.governor else None)
+                                 governor=GOVERNOR_PRESETS[args.governor] if args.governor else None)
         notifier = SystemdNotifier()
         companion = Companion(policy, depth, link, config, log, recorder, notifier)
         notifier.ready(f"model, camera and link up ({hb.kind.value}, system {hb.sysid})")

@@ -74,6 +74,24 @@ class GovernorSpec:
         return {k: (None if isinstance(v, float) and math.isinf(v) else v) for k, v in asdict(self).items()}
 
 
+#: Named settings (``companion --governor [NAME]``, ``swarm_test --governor [NAME]``), measured in docs/results.md
+#: ("The speed governor's two settings"). ``stop-and-turn`` (the default: ``--governor`` alone) stops 1 m short and
+#: turns away: what a policy that never turns by itself needs in front of a pole. ``swarm`` stops 0.6 m short and never
+#: turns: the circle-teacher policies turn by themselves, and the default's turn and longer stop break their dense
+#: converging traffic (circles of 12-14 UAVs), where a UAV stopped or turned at the centre is met by neighbours it
+#: cannot see.
+GOVERNOR_PRESETS: dict[str, GovernorSpec] = {
+    "stop-and-turn": GovernorSpec(),
+    "swarm": GovernorSpec(stop_distance_m=0.6, turn_when_capped_below=0.0),
+}
+DEFAULT_GOVERNOR = "stop-and-turn"
+
+
+def governor_name(spec: GovernorSpec) -> str:
+    """The preset ``spec`` is (:data:`GOVERNOR_PRESETS`), or ``custom``."""
+    return next((name for name, preset in GOVERNOR_PRESETS.items() if preset == spec), "custom")
+
+
 class SpeedGovernor:
     """Applies a :class:`GovernorSpec` to commands of UAVs carrying ``camera`` (the policy's camera).
 

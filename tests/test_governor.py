@@ -139,6 +139,30 @@ def test_evaluation_flies_a_governed_controller_under_its_own_label():
     assert rates(method) == (1.0, 0.0, 0.0)
 
 
+def test_the_named_settings_reach_the_evaluation_and_the_companion_command_line():
+    """``--governor`` alone is the default (stop and turn); ``--governor swarm`` stops 0.6 m short and never turns."""
+    from companion.cli import build_parser as companion_parser
+    from companion.governor import DEFAULT_GOVERNOR, GOVERNOR_PRESETS
+    from sitl.eval.cli import parse_args
+
+    swarm = GOVERNOR_PRESETS["swarm"]
+    assert GOVERNOR_PRESETS[DEFAULT_GOVERNOR] == GovernorSpec()
+    assert swarm.stop_distance_m == 0.6 and swarm.turn_when_capped_below == 0.0
+    assert resolve_method("straight").with_governor(swarm).label == "straight+governor-swarm"
+    assert resolve_method("straight").with_governor(GovernorSpec()).label == "straight+governor"
+    assert parse_args(["--policy", "straight", "--governor", "--n", "2"]).governor == DEFAULT_GOVERNOR
+    assert parse_args(["--policy", "straight", "--governor", "swarm"]).governor == "swarm"
+    assert parse_args(["--policy", "straight"]).governor is None
+    base = ["--connect", "udp:14540", "--model", "m.pt", "--camera", "sitl:14640"]
+    assert companion_parser().parse_args([*base, "--governor"]).governor == DEFAULT_GOVERNOR
+    assert companion_parser().parse_args([*base, "--governor", "swarm"]).governor == "swarm"
+    # A governor that stops but never turns leaves the policy's yaw alone: nose to nose, nobody passes.
+    governor = SpeedGovernor(CAMERA, swarm)
+    frame = np.full((1, CAMERA.height, CAMERA.width), 0.8, dtype=np.float32)  # a wall 0.8 m ahead
+    out, capped, nearest, turning = governor.apply(frame, np.array([[2.0, 0.0, 0.1]], dtype=np.float32))
+    assert capped[0] and out[0, 0] < 0.5 and out[0, 2] == pytest.approx(0.1) and turning[0] == 0
+
+
 def test_a_stored_flown_cell_is_reused_only_for_the_same_governor_settings(tmp_path):
     from sitl.eval.flown import flown_cells, run_flown_cell
 

@@ -39,7 +39,7 @@ import signal
 import sys
 from pathlib import Path
 
-from companion.governor import GovernorSpec
+from companion.governor import GOVERNOR_PRESETS
 from companion.spec import DEFAULT_TASK_SPEC
 from sitl.cli_args import (
     add_governor_flag,
@@ -199,7 +199,7 @@ def run_single(args: argparse.Namespace) -> int:
     except EvaluationError as err:
         args.parser.error(str(err))
     if args.governor:
-        method = method.with_governor(GovernorSpec())
+        method = method.with_governor(GOVERNOR_PRESETS[args.governor])
     if method.kind == "policy":
         import torch
 
@@ -427,7 +427,7 @@ def flown_main(argv: list[str] | None = None) -> int:
 
     args = parse_flown_args(argv)
     try:
-        methods = protocol_methods(args.policy, args.reference, GovernorSpec() if args.governor else None)
+        methods = protocol_methods(args.policy, args.reference, GOVERNOR_PRESETS[args.governor] if args.governor else None)
     except EvaluationError as err:
         args.parser.error(str(err))
     if methods[0].kind == "policy":

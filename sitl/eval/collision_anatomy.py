@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from companion.frames import ned_to_frd
-from companion.governor import GovernorSpec
+from companion.governor import GOVERNOR_PRESETS, GovernorSpec
 from sitl.cli_args import add_governor_flag, camera_preset
 from sitl.sim.camera import in_frustum
 from sitl.sim.config import CIRCLE_RADIUS_M, DENSITIES, ScenarioConfig, SimConfig
@@ -323,7 +323,7 @@ def format_table(result: dict) -> str:
                  s[f"saw_with_warning_at_least_{WARNING_LONG_S:g}_s"]))
     rows += [(f"collided {k[5:-2].replace('_', '-')} s after the start", v) for k, v in s.items()
              if k.startswith("time_")]
-    flown_as = f" ({result['method']})" if result.get("method", "").endswith(GOVERNED_SUFFIX) else ""
+    flown_as = f" ({result['method']})" if GOVERNED_SUFFIX in result.get("method", "") else ""
     lines = [f"{result['policy']}{flown_as}: {result['scenario']} ({result['uav_episodes']} UAV-episodes)",
              "| | UAVs | share of collisions | per UAV-episode |", "| --- | --- | --- | --- |"]
     lines += [f"| {name} | {v} | {v / total:.2f} | {v / result['uav_episodes']:.3f} |" for name, v in rows]
@@ -401,7 +401,7 @@ def main(argv: list[str] | None = None) -> int:
         settings = EvalSettings(scenario=scenario, num_uavs=args.n, episodes=args.episodes, seed=args.seed,
                                 record_paths=False)
     try:
-        result = analyse(args.policy, settings, progress=True, governor=GovernorSpec() if args.governor else None)
+        result = analyse(args.policy, settings, progress=True, governor=GOVERNOR_PRESETS[args.governor] if args.governor else None)
     except EvaluationError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

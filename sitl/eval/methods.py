@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.governor import GovernorSpec
+from companion.governor import DEFAULT_GOVERNOR, GovernorSpec, governor_name
 from companion.spec import CameraSpec
 from sitl.sim.env import Observation, SwarmEnv
 from sitl.sim.episodes import Actor, ActorFactory, governed_actor
@@ -25,7 +25,8 @@ BASELINES = ("straight", "orca", "orca-fov", "orca-fov-right")
 #: The ORCA references (sitl.eval.orca): all UAVs known, or only those in the camera's view (and
 #: keeping right when one of them closes in).
 ORCA_BASELINES = ("orca", "orca-fov", "orca-fov-right")
-#: Appended to a controller's label when the speed governor follows it.
+#: Appended to a controller's label when the speed governor follows it (``+governor-NAME`` for a preset other
+#: than the default, ``companion.governor.GOVERNOR_PRESETS``).
 GOVERNED_SUFFIX = "+governor"
 
 
@@ -78,10 +79,12 @@ class Method:
         has one (a policy trained with it) keeps its own, as the companion does."""
         if self.governor is not None:
             return self
-        return dataclasses.replace(self, label=self.label + GOVERNED_SUFFIX, governor=spec)
+        name = governor_name(spec)
+        suffix = GOVERNED_SUFFIX if name in (DEFAULT_GOVERNOR, "custom") else f"{GOVERNED_SUFFIX}-{name}"
+        return dataclasses.replace(self, label=self.label + suffix, governor=spec)
 
     def _make_ungoverned_actor(self, env: SwarmEnv) -> Actor:
-        name = self.label.removesuffix(GOVERNED_SUFFIX)  # the controller the governor follows
+        name = self.label.split(GOVERNED_SUFFIX)[0]  # the controller the governor follows
         if self.kind == "baseline" and name == "straight":
             from sitl.sim.baselines import straight_actor
 

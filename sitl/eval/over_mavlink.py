@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.governor import GovernorSpec
+from companion.governor import GOVERNOR_PRESETS, governor_name
 from companion.spec import TaskSpec
 from sitl.eval.evaluate import EvalResult, EvalSettings
 from sitl.eval.methods import EvaluationError, Method
@@ -33,8 +33,10 @@ def evaluate_beside_in_process(method: Method, settings: EvalSettings, in_proces
     camera = sim_config.camera
     # A policy trained with the governor carries it: the companions read its settings from the file.
     from_file = method.trained_with_governor
-    if method.governor is not None and not from_file and method.governor != GovernorSpec():
-        raise EvaluationError("over MAVLink the companions fly the governor with its default settings only")
+    governor = governor_name(method.governor) if method.governor is not None and not from_file else None
+    if governor == "custom":
+        raise EvaluationError("over MAVLink the companions fly the governor's named settings only "
+                              f"({', '.join(GOVERNOR_PRESETS)})")
     mav_settings = MavlinkSettings(
         policy_path=str(method.path), start=start, base_port=base_port, depth_port=depth_port,
         gcs_port=gcs_port, dynamics=settings.dynamics, camera_size=(camera.width, camera.height),
@@ -42,7 +44,7 @@ def evaluate_beside_in_process(method: Method, settings: EvalSettings, in_proces
         time_limit_s=settings.max_episode_steps * sim_config.control_period_s,
         task=TaskSpec(collision_radius_m=sim_config.collision_radius_m,  # scored as the in-process run beside it
                       arrival_radius_m=sim_config.reward.arrival_radius_m, max_episode_steps=settings.max_episode_steps),
-        governor=method.governor is not None and not from_file)
+        governor=governor)
     evaluation = evaluate_over_mavlink(samples, mav_settings, out, progress=progress)
     label = f"{method.label} (MAVLink)"
     result = EvalResult(replace(method, label=label), settings, sim_config, evaluation.records,

@@ -73,7 +73,7 @@ class MavlinkSettings:
     time_limit_s: float = 40.0  # after the goals are sent
     ready_timeout_s: float = 120.0  # start-up, arming and takeoff
     companion_threads: int = 1  # torch threads per companion: N of them share the machine
-    governor: bool = False  # companion --governor (its default settings)
+    governor: str | None = None  # companion --governor NAME (companion.governor.GOVERNOR_PRESETS); None: off
     task: TaskSpec = DEFAULT_TASK_SPEC  # collision and arrival radii the outcomes are scored with (the in-process run's)
 
     def __post_init__(self) -> None:
@@ -286,7 +286,7 @@ def fly_episode(sample: ScenarioSample, episode: int, settings: MavlinkSettings,
                     # --start airborne, but its command line asks for the altitude with every --arm)
                     "--takeoff", f"{-sample.start_ned[i, 2]:.2f}"]
             if settings.governor:
-                args.append("--governor")
+                args += ["--governor", settings.governor]
             groups.start(name, args, folder / f"{name}.out")
         status(f"episode {episode}: {n} companions starting")
         _wait_companions_ready(groups, gcs, folder, names, started + settings.ready_timeout_s, status, episode)
