@@ -156,6 +156,14 @@ def test_the_named_settings_reach_the_evaluation_and_the_companion_command_line(
     base = ["--connect", "udp:14540", "--model", "m.pt", "--camera", "sitl:14640"]
     assert companion_parser().parse_args([*base, "--governor"]).governor == DEFAULT_GOVERNOR
     assert companion_parser().parse_args([*base, "--governor", "swarm"]).governor == "swarm"
+    from sitl.learn.config import resolve_configs
+    from sitl.learn.trainer import train_governor
+
+    assert train_governor(resolve_configs({"governor": True, "governor_setting": "swarm"}, {})[0]) == swarm
+    assert train_governor(resolve_configs({"governor": True}, {})[0]) == GovernorSpec()
+    assert train_governor(resolve_configs({"governor_setting": "swarm"}, {})[0]) is None
+    with pytest.raises(ValueError, match="unknown governor_setting"):
+        resolve_configs({"governor_setting": "fast"}, {})
     # A governor that stops but never turns leaves the policy's yaw alone: nose to nose, nobody passes.
     governor = SpeedGovernor(CAMERA, swarm)
     frame = np.full((1, CAMERA.height, CAMERA.width), 0.8, dtype=np.float32)  # a wall 0.8 m ahead

@@ -99,6 +99,9 @@ class TrainConfig:
                                    "the policy in training, validation and the final choice; the exported policy.json "
                                    "records it and swarm_test and the companion then apply it (docs/training.md "
                                    "'Training with the governor in the loop')")
+    governor_setting: str = _param("stop-and-turn", "with governor: its named settings (companion.governor."
+                                                    "GOVERNOR_PRESETS): stop-and-turn (1 m, turns away) or swarm "
+                                                    "(0.6 m, never turns)")
     frame_stride: int = _param(1, "control steps between two of the 3 stacked depth frames (1: consecutive, the "
                                   "paper; 3: the stack spans 0.6 s; docs/training.md 'A frame stack spanning longer')")
     frame_ages: str = _param("", "age in control steps of each of the 3 stacked frames, oldest first, ending in 0, "
@@ -250,6 +253,11 @@ class TrainConfig:
             raise ValueError(f"teacher_bc_weight must be in [0, 100], got {self.teacher_bc_weight}")
         if self.circle_teacher_right and self.method != "distill" and self.teacher_bc_weight <= 0:
             raise ValueError("circle_teacher_right needs a teacher: the distill method or teacher_bc_weight > 0")
+        from companion.governor import GOVERNOR_PRESETS
+
+        if self.governor_setting not in GOVERNOR_PRESETS:
+            raise ValueError(f"unknown governor_setting {self.governor_setting!r}; choose one of "
+                             f"{', '.join(GOVERNOR_PRESETS)}")
         if self.teacher_camera_limited and self.method != "distill" and self.teacher_bc_weight <= 0:
             raise ValueError("teacher_camera_limited needs a teacher: the distill method or teacher_bc_weight > 0")
         if self.method == "distill" and self.teacher_bc_weight > 0:

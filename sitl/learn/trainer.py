@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from companion.governor import GovernorSpec
+from companion.governor import GOVERNOR_PRESETS, GovernorSpec
 from companion.spec import DEFAULT_ACTION_SPEC, STATE_DIM, TaskSpec
 from sitl.learn.agent import AgentConfig, SacAeAgent
 from sitl.learn.buffer import FrameReplayBuffer
@@ -62,8 +62,8 @@ def agent_actor(agent: SacAeAgent, governor: GovernorSpec | None = None) -> Acto
 
 
 def train_governor(cfg: TrainConfig) -> GovernorSpec | None:
-    """The speed governor a run trains with (``--governor``): the companion's default settings, or none."""
-    return GovernorSpec() if cfg.governor else None
+    """The speed governor a run trains with (``--governor``, ``--governor-setting``), or none."""
+    return GOVERNOR_PRESETS[cfg.governor_setting] if cfg.governor else None
 
 
 def plot_learning_curve(history: dict, path: Path, title: str) -> None:
