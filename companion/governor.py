@@ -27,7 +27,9 @@ It only lowers the forward speed and sets the yaw rate; climb is the policy's. "
 read as the camera's range (the policy's convention), i.e. free. It assumes the obstacle stands
 still (two vehicles closing head-on need twice the room). Measured in docs/results.md ("The speed
 governor"): it lifts random and obstacle scenes and costs dense converging traffic (a circle of 14
-UAVs), so it is opt-in (``companion --governor``).
+UAVs), so it is opt-in (``companion --governor``). :data:`GOVERNOR_PRESETS` names two settings: the
+default ``stop-and-turn`` and ``swarm`` (0.6 m stop, no turn), which keeps dense circles for policies that
+turn by themselves.
 """
 
 from __future__ import annotations
