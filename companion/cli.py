@@ -239,7 +239,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="speed governor after the policy: cap the forward speed so the vehicle stops "
                              f"{GovernorSpec().stop_distance_m:g} m before the nearest depth point in a "
                              f"+-{GovernorSpec().corridor_half_width_m:g} m corridor ahead, and turn towards the freer "
-                             f"side until the way is clear ({DEFAULT_GOVERNOR}, the default with --governor alone); "
+                             f"side until the way is clear (--governor alone: {DEFAULT_GOVERNOR}); "
                              f"swarm: stop {GOVERNOR_PRESETS['swarm'].stop_distance_m:g} m short and never turn, for "
                              "policies that turn by themselves in dense traffic (PX4's collision prevention does nothing "
                              "in Offboard; default off: docs/companion.md). A policy trained with the governor "

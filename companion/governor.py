@@ -28,7 +28,7 @@ read as the camera's range (the policy's convention), i.e. free. It assumes the 
 still (two vehicles closing head-on need twice the room). Measured in docs/results.md ("The speed
 governor"): it lifts random and obstacle scenes and costs dense converging traffic (a circle of 14
 UAVs), so it is opt-in (``companion --governor``). :data:`GOVERNOR_PRESETS` names two settings: the
-default ``stop-and-turn`` and ``swarm`` (0.6 m stop, no turn), which keeps dense circles for policies that
+``default`` (stop and turn) and ``swarm`` (0.6 m stop, no turn), which keeps dense circles for policies that
 turn by themselves.
 """
 
@@ -77,16 +77,16 @@ class GovernorSpec:
 
 
 #: Named settings (``companion --governor [NAME]``, ``swarm_test --governor [NAME]``), measured in docs/results.md
-#: ("The speed governor's two settings"). ``stop-and-turn`` (the default: ``--governor`` alone) stops 1 m short and
+#: ("The governor's ``swarm`` setting"). ``default`` (``--governor`` alone) stops 1 m short and
 #: turns away: what a policy that never turns by itself needs in front of a pole. ``swarm`` stops 0.6 m short and never
 #: turns: the circle-teacher policies turn by themselves, and the default's turn and longer stop break their dense
 #: converging traffic (circles of 12-14 UAVs), where a UAV stopped or turned at the centre is met by neighbours it
 #: cannot see.
 GOVERNOR_PRESETS: dict[str, GovernorSpec] = {
-    "stop-and-turn": GovernorSpec(),
+    "default": GovernorSpec(),
     "swarm": GovernorSpec(stop_distance_m=0.6, turn_when_capped_below=0.0),
 }
-DEFAULT_GOVERNOR = "stop-and-turn"
+DEFAULT_GOVERNOR = "default"
 
 
 def governor_name(spec: GovernorSpec) -> str:

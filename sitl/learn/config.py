@@ -99,9 +99,9 @@ class TrainConfig:
                                    "the policy in training, validation and the final choice; the exported policy.json "
                                    "records it and swarm_test and the companion then apply it (docs/training.md "
                                    "'Training with the governor in the loop')")
-    governor_setting: str = _param("stop-and-turn", "with governor: its named settings (companion.governor."
-                                                    "GOVERNOR_PRESETS): stop-and-turn (1 m, turns away) or swarm "
-                                                    "(0.6 m, never turns)")
+    governor_setting: str = _param("default", "with governor: its named settings (companion.governor."
+                                              "GOVERNOR_PRESETS): default (stops 1 m short, turns away) or swarm "
+                                              "(stops 0.6 m short, never turns)")
     frame_stride: int = _param(1, "control steps between two of the 3 stacked depth frames (1: consecutive, the "
                                   "paper; 3: the stack spans 0.6 s; docs/training.md 'A frame stack spanning longer')")
     frame_ages: str = _param("", "age in control steps of each of the 3 stacked frames, oldest first, ending in 0, "
@@ -170,8 +170,8 @@ class TrainConfig:
                                         "no label (SAC's teacher pull)")
     teacher_camera_limited: bool = _param(False, "with a teacher (distill, teacher_bc_weight): the worlds other than "
                                           "circles are labelled by ORCA that knows only the UAVs in each UAV's camera "
-                                          "view (orca-fov; it still sees the obstacles) instead of privileged ORCA "
-                                          "that knows every UAV")
+                                          "view and still sees the obstacles (the camera limited ORCA reference, plus obstacles) "
+                                          "instead of privileged ORCA that knows every UAV")
     teacher_bc_updates: int = _param(0, "the teacher's weight falls linearly to 0 over this many updates, counted "
                                         "from the first stage of a recipe (0: it stays constant)")
     dagger_beta_updates: int = _param(4_000, "distill method: the share of UAVs flying the teacher's command instead "
