@@ -353,6 +353,11 @@ def _fly(args: argparse.Namespace, log) -> int:
     if policy.governor is not None:  # trained with it: it always flies with it (--governor or not)
         log.event("model_note", "the policy was trained with the speed governor after it: the companion applies it "
                                 "with the file's settings")
+    elif args.governor:  # what the operator asked for, with the settings it means
+        spec = GOVERNOR_PRESETS[args.governor]
+        log.event("governor", f"speed governor '{args.governor}' after the policy: stop {spec.stop_distance_m:g} m "
+                              f"short, {'turn away when stopped' if spec.turn_when_capped_below > 0 else 'never turn'}",
+                  setting=args.governor, governor=spec.to_dict())
 
     # 2. The camera.
     from companion.depth_sources import DepthSourceError, open_depth_source

@@ -246,3 +246,23 @@ def test_training_with_the_governor_flies_governed_commands_and_exports_the_gove
     assert np.any(np.abs(flew[:, 2] - stored[:, 2]) > 1e-3)  # ... and turned some away
     np.testing.assert_array_equal(flew[:, 1], stored[:, 1])  # climb is never changed
     assert load_policy(tmp_path / "policy.pt").governor == GovernorSpec()
+
+
+def test_the_companion_names_the_governor_it_flies_before_anything_else_can_fail(tmp_path):
+    """``companion --governor swarm``: the log says which setting and what it does right after the model,
+    so a flight log shows it even when the camera then fails (here a missing replay: exit 4)."""
+    import json
+    import subprocess
+    import sys
+
+    from tests.companion_helpers import REPO, env
+
+    proc = subprocess.run([sys.executable, "-m", "companion.cli", "--connect", "udp:14540", "--model",
+                           str(REPO / "models" / "policy.pt"), "--camera", f"replay:{tmp_path / 'none.npz'}",
+                           "--governor", "swarm"], cwd=tmp_path, env=env(), capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 4, proc.stderr
+    events = [json.loads(line) for line in proc.stdout.splitlines()]
+    (governor,) = [e for e in events if e.get("event") == "governor"]
+    assert governor["setting"] == "swarm" and governor["governor"]["stop_distance_m"] == 0.6
+    assert "never turn" in governor["message"]
+    assert [e["event"] for e in events].index("governor") < [e["event"] for e in events].index("exit")
