@@ -25,7 +25,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from companion.flightlog import DEFAULT_LOG_KEEP, DEFAULT_LOG_MAX_MB
-from companion.governor import DEFAULT_GOVERNOR, GOVERNOR_PRESETS, GovernorSpec
+from companion.governor import DEFAULT_GOVERNOR, GOVERNOR_PRESETS, GovernorSpec, add_governor_argument
 from companion.recording import DEFAULT_RECORD_KEEP, DEFAULT_RECORD_MAX_MB
 from companion.spec import (
     DEFAULT_ACTION_SPEC,
@@ -234,16 +234,15 @@ def build_parser() -> argparse.ArgumentParser:
     flight.add_argument("--obstacle-distance", action=argparse.BooleanOptionalAction, default=True,
                         help="publish MAVLink OBSTACLE_DISTANCE (72 bins, body FRD) from every depth frame, for the "
                              "autopilot's own collision prevention (default on; docs/companion.md)")
-    flight.add_argument("--governor", nargs="?", const=DEFAULT_GOVERNOR, default=None, choices=list(GOVERNOR_PRESETS),
-                        metavar="{" + ",".join(GOVERNOR_PRESETS) + "}",
-                        help="speed governor after the policy: cap the forward speed so the vehicle stops "
-                             f"{GovernorSpec().stop_distance_m:g} m before the nearest depth point in a "
-                             f"+-{GovernorSpec().corridor_half_width_m:g} m corridor ahead, and turn towards the freer "
-                             f"side until the way is clear (--governor alone: {DEFAULT_GOVERNOR}); "
-                             f"swarm: stop {GOVERNOR_PRESETS['swarm'].stop_distance_m:g} m short and never turn, for "
-                             "policies that turn by themselves in dense traffic (PX4's collision prevention does nothing "
-                             "in Offboard; default off: docs/companion.md). A policy trained with the governor "
-                             "(policy.json 'governor') always flies with it, with the file's settings")
+    add_governor_argument(
+        flight, help="speed governor after the policy: cap the forward speed so the vehicle stops "
+                      f"{GovernorSpec().stop_distance_m:g} m before the nearest depth point in a "
+                      f"+-{GovernorSpec().corridor_half_width_m:g} m corridor ahead, and turn towards the freer "
+                      f"side until the way is clear (--governor alone: {DEFAULT_GOVERNOR}); "
+                      f"swarm: stop {GOVERNOR_PRESETS['swarm'].stop_distance_m:g} m short and never turn, for "
+                      "policies that turn by themselves in dense traffic (PX4's collision prevention does nothing "
+                      "in Offboard; default off: docs/companion.md). A policy trained with the governor "
+                      "(policy.json 'governor') always flies with it, with the file's settings")
     output = parser.add_argument_group("output")
     output.add_argument("--log", type=_output_file, default="-", metavar="PATH",
                         help="JSON-lines log of every control step and event (default '-': stdout)")

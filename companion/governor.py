@@ -89,6 +89,13 @@ GOVERNOR_PRESETS: dict[str, GovernorSpec] = {
 DEFAULT_GOVERNOR = "default"
 
 
+def add_governor_argument(parser, help: str) -> None:
+    """``--governor [NAME]`` on an argparse parser or group: a :data:`GOVERNOR_PRESETS` name, the default when
+    given alone, None when absent (the companion's and the simulator's command lines share it)."""
+    parser.add_argument("--governor", nargs="?", const=DEFAULT_GOVERNOR, default=None, choices=list(GOVERNOR_PRESETS),
+                        metavar="{" + ",".join(GOVERNOR_PRESETS) + "}", help=help)
+
+
 def governor_name(spec: GovernorSpec) -> str:
     """The preset ``spec`` is (:data:`GOVERNOR_PRESETS`), or ``custom``."""
     return next((name for name, preset in GOVERNOR_PRESETS.items() if preset == spec), "custom")

@@ -16,7 +16,6 @@ import tempfile
 from pathlib import Path
 
 from companion.depth_wire import HEADER_SIZE, MAX_DATAGRAM
-from companion.governor import GovernorSpec
 
 #: Most vehicles one process simulates: vehicle i is MAVLink system i + 1 (1..255).
 MAX_VEHICLES = 255
@@ -272,16 +271,15 @@ def cylinder_rows(cylinders: list[list[float]] | None) -> list[list[float]] | No
 def add_governor_flag(parser: argparse.ArgumentParser, extra_help: str = "") -> None:
     """``--governor [NAME]``: the companion's speed governor (``companion.governor.GOVERNOR_PRESETS``) after the
     controller; ``args.governor`` is the preset's name or None."""
-    from companion.governor import DEFAULT_GOVERNOR, GOVERNOR_PRESETS
+    from companion.governor import DEFAULT_GOVERNOR, GOVERNOR_PRESETS, add_governor_argument
 
     spec, swarm = GOVERNOR_PRESETS[DEFAULT_GOVERNOR], GOVERNOR_PRESETS["swarm"]
-    parser.add_argument("--governor", nargs="?", const=DEFAULT_GOVERNOR, default=None, choices=list(GOVERNOR_PRESETS),
-                        metavar="{" + ",".join(GOVERNOR_PRESETS) + "}",
-                        help="apply the companion's speed governor (companion --governor) to the controller's "
-                             f"commands: {DEFAULT_GOVERNOR} (--governor alone) stops {spec.stop_distance_m:g} m before "
-                             f"what is straight ahead in a {spec.corridor_half_width_m:g} m corridor and turns away when "
-                             f"stopped; swarm stops {swarm.stop_distance_m:g} m short and never turns; the label gains "
-                             "+governor (+governor-swarm)" + extra_help)
+    add_governor_argument(
+        parser, help="apply the companion's speed governor (companion --governor) to the controller's "
+                      f"commands: {DEFAULT_GOVERNOR} (--governor alone) stops {spec.stop_distance_m:g} m before "
+                      f"what is straight ahead in a {spec.corridor_half_width_m:g} m corridor and turns away when "
+                      f"stopped; swarm stops {swarm.stop_distance_m:g} m short and never turns; the label gains "
+                      "+governor (+governor-swarm)" + extra_help)
 
 
 def camera_preset(text: str) -> str:

@@ -481,20 +481,28 @@ def test_trainer_labels_with_privileged_orca_outside_circle_worlds_and_the_weigh
     assert np.abs(labels).max() <= 1.0 and labels[:, 0].max() > 0  # unit actions; ORCA flies forward
 
 
-def test_the_circle_teacher_labels_circle_worlds_with_orca_that_keeps_right_of_what_it_sees(tmp_path):
-    """``circle_teacher_right``: circle worlds are labelled too, by the camera-limited right-of-way ORCA
-    (its commands, not privileged ORCA's), and the other worlds keep privileged ORCA's labels."""
-    from sitl.eval.orca import RIGHT_HAND_PARAMS
+def _small_teacher_run(tmp_path, **train):
+    """Four updates of teacher-guided SAC in the flown mix (half the worlds among obstacles), ``train`` on top."""
     from sitl.learn.config import PRESETS, resolve_configs
     from sitl.learn.trainer import make_trainer
 
     cfg, agent_cfg = resolve_configs(
-        {**PRESETS["flown"]["train"], "preset": "flown", "scenario": "mixed", "circle_fraction": 0.5,
-         "obstacle_fraction": 0.5, "num_worlds": 4, "total_updates": 4, "init_steps": 60, "batch_size": 16,
-         "eval_every_updates": 0, "final_eval_episodes": 0, "teacher_bc_weight": 1.0, "circle_teacher_right": True},
+        {**PRESETS["flown"]["train"], "preset": "flown", "scenario": "mixed", "obstacle_fraction": 0.5,
+         "num_worlds": 4, "total_updates": 4, "init_steps": 60, "batch_size": 16, "eval_every_updates": 0,
+         "final_eval_episodes": 0, "teacher_bc_weight": 1.0, **train},
         {"hidden_dim": 32})
     trainer = make_trainer(cfg, agent_cfg, tmp_path)
     trainer.run()
+    return trainer
+
+
+def test_the_circle_teacher_labels_circle_worlds_with_orca_that_keeps_right_of_what_it_sees(tmp_path):
+    """``circle_teacher_right``: circle worlds are labelled too, by the camera-limited right-of-way ORCA
+    (its commands, not privileged ORCA's), and the other worlds keep privileged ORCA's labels."""
+    from sitl.eval.orca import RIGHT_HAND_PARAMS
+    from sitl.learn.config import resolve_configs
+
+    trainer = _small_teacher_run(tmp_path, circle_fraction=0.5, circle_teacher_right=True)
     assert trainer.buffer.teacher_valid[:trainer.buffer.size].min() == 1.0  # every world labelled
     env = trainer.env
     assert trainer.circle_teacher.camera is not None and trainer.circle_teacher.params == RIGHT_HAND_PARAMS
@@ -510,16 +518,9 @@ def test_the_circle_teacher_labels_circle_worlds_with_orca_that_keeps_right_of_w
 def test_a_camera_limited_teacher_labels_the_other_worlds_with_what_each_uav_sees(tmp_path):
     """``teacher_camera_limited``: the worlds other than circles are labelled by orca-fov that sees the
     obstacles (each UAV knows only the UAVs in its camera's view), and the provenance says so."""
-    from sitl.learn.config import PRESETS, resolve_configs
-    from sitl.learn.trainer import make_trainer
+    from sitl.learn.config import resolve_configs
 
-    cfg, agent_cfg = resolve_configs(
-        {**PRESETS["flown"]["train"], "preset": "flown", "scenario": "mixed", "circle_fraction": 0.0,
-         "obstacle_fraction": 0.5, "num_worlds": 4, "total_updates": 4, "init_steps": 60, "batch_size": 16,
-         "eval_every_updates": 0, "final_eval_episodes": 0, "teacher_bc_weight": 1.0, "teacher_camera_limited": True},
-        {"hidden_dim": 32})
-    trainer = make_trainer(cfg, agent_cfg, tmp_path)
-    trainer.run()
+    trainer = _small_teacher_run(tmp_path, circle_fraction=0.0, teacher_camera_limited=True)
     teacher, env = trainer.teacher, trainer.env
     assert teacher.camera is not None and teacher.see_obstacles
     assert trainer.buffer.teacher_valid[:trainer.buffer.size].min() == 1.0  # no circle worlds: every row labelled
