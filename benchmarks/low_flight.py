@@ -17,7 +17,8 @@ output is one JSON object.
 
 Usage: ``python benchmarks/low_flight.py [--policy models/policy.pt] [--altitudes 2 3 5]
 [--distance 15] [--governor] [--smoke]`` (``--smoke``: one 2 m flight of 5 m; what CI runs;
-``--governor``: the companion with its speed governor).
+``--governor``: the companion with its speed governor; each flight's ``governor`` is the setting the companion
+logged it flies, from the flag or from a policy file trained with one).
 """
 
 from __future__ import annotations
@@ -71,7 +72,9 @@ def fly(policy: Path, camera: str, altitude_m: float, distance_m: float, folder:
     start = next((e for e in events if e.get("event") == "phase" and e.get("to") == "flying_to_goal"), None)
     arrived = next((e for e in events if e.get("event") == "arrived"), None)
     points = [(r["t"], np.asarray(r["pos_ned"][0])) for r in read_jsonl(trace)]
-    row = {"altitude_m": altitude_m, "distance_m": distance_m, "companion_exit": code, "arrived": arrived is not None}
+    flown = next((e for e in events if e.get("event") == "governor"), None)  # the flag's or the policy file's
+    row = {"altitude_m": altitude_m, "distance_m": distance_m, "companion_exit": code, "arrived": arrived is not None,
+           "governor": flown["setting"] if flown else None}
     if start is None or not points:
         return row | {"error": f"never flew to the goal (see {folder})"}
     way = [p for t, p in points if t >= start["t"] and (arrived is None or t <= arrived["t"])]
@@ -115,7 +118,7 @@ def main() -> None:
                      else f"did not arrive ({row.get('error', 'timeout')})"), flush=True)
     two = next((r for r in rows if r["altitude_m"] == 2.0 and distance == 15.0), None)
     print(json.dumps({"benchmark": "low_flight", "policy": str(args.policy), "camera": camera,
-                      "governor": args.governor, "flights": rows,
+                      "governor_flag": args.governor, "flights": rows,
                       "target_flight_s": TARGET_FLIGHT_S,
                       "target_met": None if two is None else bool(two.get("flight_s", 1e9) <= TARGET_FLIGHT_S)}))
 

@@ -25,7 +25,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from companion.flightlog import DEFAULT_LOG_KEEP, DEFAULT_LOG_MAX_MB
-from companion.governor import DEFAULT_GOVERNOR, GOVERNOR_PRESETS, GovernorSpec, add_governor_argument
+from companion.governor import DEFAULT_GOVERNOR, GOVERNOR_PRESETS, GovernorSpec, add_governor_argument, governor_name
 from companion.recording import DEFAULT_RECORD_KEEP, DEFAULT_RECORD_MAX_MB
 from companion.spec import (
     DEFAULT_ACTION_SPEC,
@@ -352,11 +352,14 @@ def _fly(args: argparse.Namespace, log) -> int:
     if policy.governor is not None:  # trained with it: it always flies with it (--governor or not)
         log.event("model_note", "the policy was trained with the speed governor after it: the companion applies it "
                                 "with the file's settings")
-    elif args.governor:  # what the operator asked for, with the settings it means
-        spec = GOVERNOR_PRESETS[args.governor]
-        log.event("governor", f"speed governor '{args.governor}' after the policy: stop {spec.stop_distance_m:g} m "
-                              f"short, {'turn away when stopped' if spec.turn_when_capped_below > 0 else 'never turn'}",
-                  setting=args.governor, governor=spec.to_dict())
+    governor = policy.governor if policy.governor is not None else (
+        GOVERNOR_PRESETS[args.governor] if args.governor else None)
+    if governor is not None:  # what will fly, by name, and where it came from
+        source = "policy file" if policy.governor is not None else "--governor"
+        log.event("governor", f"speed governor '{governor_name(governor)}' after the policy ({source}): stop "
+                              f"{governor.stop_distance_m:g} m short, "
+                              f"{'turn away when stopped' if governor.turn_when_capped_below > 0 else 'never turn'}",
+                  setting=governor_name(governor), source=source, governor=governor.to_dict())
 
     # 2. The camera.
     from companion.depth_sources import DepthSourceError, open_depth_source

@@ -304,6 +304,8 @@ def test_the_governor_takes_a_policy_that_never_brakes_round_a_pole(rigs):
     rig.procs.stop_all()
     assert code == 0, rig.procs.stderr("companion")[-3000:]
     assert any("trained with the speed governor" in e["message"] for e in _events(rig, "model_note"))
+    (governor,) = _events(rig, "governor")  # the setting that flies, named, and where it came from
+    assert governor["source"] == "policy file" and governor["setting"] == "default"
     (arrived,) = _events(rig, "arrived")
     assert arrived["dist_m"] <= 0.5
     governed = [s for s in _steps(rig) if s.get("governor")]
