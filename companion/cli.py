@@ -25,7 +25,8 @@ from dataclasses import asdict
 from pathlib import Path
 
 from companion.flightlog import DEFAULT_LOG_KEEP, DEFAULT_LOG_MAX_MB
-from companion.governor import DEFAULT_GOVERNOR, GOVERNOR_PRESETS, GovernorSpec, add_governor_argument, governor_name
+from companion.governor import (DEFAULT_GOVERNOR, GOVERNOR_PRESETS, add_governor_argument, describe_presets,
+                                governor_name)
 from companion.recording import DEFAULT_RECORD_KEEP, DEFAULT_RECORD_MAX_MB
 from companion.spec import (
     DEFAULT_ACTION_SPEC,
@@ -235,13 +236,11 @@ def build_parser() -> argparse.ArgumentParser:
                         help="publish MAVLink OBSTACLE_DISTANCE (72 bins, body FRD) from every depth frame, for the "
                              "autopilot's own collision prevention (default on; docs/companion.md)")
     add_governor_argument(
-        flight, help="speed governor after the policy: cap the forward speed so the vehicle stops "
-                      f"{GovernorSpec().stop_distance_m:g} m before the nearest depth point in a "
-                      f"+-{GovernorSpec().corridor_half_width_m:g} m corridor ahead, and turn towards the freer "
-                      f"side until the way is clear (--governor alone: {DEFAULT_GOVERNOR}); "
-                      f"swarm: stop {GOVERNOR_PRESETS['swarm'].stop_distance_m:g} m short and never turn, for "
-                      "policies that turn by themselves in dense traffic (PX4's collision prevention does nothing "
-                      "in Offboard; default off: docs/companion.md). A policy trained with the governor "
+        flight, help="speed governor after the policy: cap the forward speed so the vehicle stops short of the "
+                      "nearest depth point in a corridor ahead (--governor alone: "
+                      f"{DEFAULT_GOVERNOR}; {describe_presets()}; swarm is for policies that turn by themselves in "
+                      "dense traffic; PX4's collision prevention does nothing in Offboard; default off: "
+                      "docs/companion.md). A policy trained with the governor "
                       "(policy.json 'governor') always flies with it, with the file's settings")
     output = parser.add_argument_group("output")
     output.add_argument("--log", type=_output_file, default="-", metavar="PATH",
@@ -356,9 +355,8 @@ def _fly(args: argparse.Namespace, log) -> int:
         GOVERNOR_PRESETS[args.governor] if args.governor else None)
     if governor is not None:  # what will fly, by name, and where it came from
         source = "policy file" if policy.governor is not None else "--governor"
-        log.event("governor", f"speed governor '{governor_name(governor)}' after the policy ({source}): stop "
-                              f"{governor.stop_distance_m:g} m short, "
-                              f"{'turn away when stopped' if governor.turn_when_capped_below > 0 else 'never turn'}",
+        log.event("governor", f"speed governor '{governor_name(governor)}' after the policy ({source}): "
+                              f"{governor.describe()}",
                   setting=governor_name(governor), source=source, governor=governor.to_dict())
 
     # 2. The camera.

@@ -75,6 +75,12 @@ class GovernorSpec:
     def to_dict(self) -> dict:
         return {k: (None if isinstance(v, float) and math.isinf(v) else v) for k, v in asdict(self).items()}
 
+    def describe(self) -> str:
+        """What this setting does, in words (the help texts and the companion's log share them), e.g.
+        ``stop 0.6 m short in a +-0.35 m corridor, never turn``."""
+        turn = "turn to the freer side when stopped" if self.turn_when_capped_below > 0 else "never turn"
+        return f"stop {self.stop_distance_m:g} m short in a +-{self.corridor_half_width_m:g} m corridor, {turn}"
+
 
 #: Named settings (``companion --governor [NAME]``, ``swarm_test --governor [NAME]``), measured in docs/results.md
 #: ("The governor's ``swarm`` setting"). ``default`` (``--governor`` alone) stops 1 m short and
@@ -94,6 +100,11 @@ def add_governor_argument(parser, help: str) -> None:
     given alone, None when absent (the companion's and the simulator's command lines share it)."""
     parser.add_argument("--governor", nargs="?", const=DEFAULT_GOVERNOR, default=None, choices=list(GOVERNOR_PRESETS),
                         metavar="{" + ",".join(GOVERNOR_PRESETS) + "}", help=help)
+
+
+def describe_presets() -> str:
+    """Every named setting and what it does, e.g. ``default: stop 1 m short ..., turn ...; swarm: ...``."""
+    return "; ".join(f"{name}: {spec.describe()}" for name, spec in GOVERNOR_PRESETS.items())
 
 
 def governor_name(spec: GovernorSpec) -> str:

@@ -271,14 +271,11 @@ def cylinder_rows(cylinders: list[list[float]] | None) -> list[list[float]] | No
 def add_governor_flag(parser: argparse.ArgumentParser, extra_help: str = "") -> None:
     """``--governor [NAME]``: the companion's speed governor (``companion.governor.GOVERNOR_PRESETS``) after the
     controller; ``args.governor`` is the preset's name or None."""
-    from companion.governor import DEFAULT_GOVERNOR, GOVERNOR_PRESETS, add_governor_argument
+    from companion.governor import DEFAULT_GOVERNOR, add_governor_argument, describe_presets
 
-    spec, swarm = GOVERNOR_PRESETS[DEFAULT_GOVERNOR], GOVERNOR_PRESETS["swarm"]
     add_governor_argument(
         parser, help="apply the companion's speed governor (companion --governor) to the controller's "
-                      f"commands: {DEFAULT_GOVERNOR} (--governor alone) stops {spec.stop_distance_m:g} m before "
-                      f"what is straight ahead in a {spec.corridor_half_width_m:g} m corridor and turns away when "
-                      f"stopped; swarm stops {swarm.stop_distance_m:g} m short and never turns; the label gains "
+                      f"commands ({DEFAULT_GOVERNOR} with --governor alone; {describe_presets()}); the label gains "
                       "+governor (+governor-swarm)" + extra_help)
 
 

@@ -171,6 +171,26 @@ def test_the_named_settings_reach_the_evaluation_and_the_companion_command_line(
     assert capped[0] and out[0, 0] < 0.5 and out[0, 2] == pytest.approx(0.1) and turning[0] == 0
 
 
+def test_every_help_text_describes_the_settings_from_the_specs_themselves():
+    """The words for what a setting does come from its numbers, so a changed preset cannot leave a stale help text."""
+    import argparse
+
+    from companion.cli import build_parser as companion_parser
+    from companion.governor import GOVERNOR_PRESETS, describe_presets
+    from sitl.cli_args import add_governor_flag
+
+    assert GovernorSpec(stop_distance_m=0.7, turn_when_capped_below=0.0).describe() == \
+        "stop 0.7 m short in a +-0.35 m corridor, never turn"
+    assert GovernorSpec().describe().endswith("turn to the freer side when stopped")
+    for name, spec in GOVERNOR_PRESETS.items():
+        assert f"{name}: {spec.describe()}" in describe_presets()
+    sim_parser = argparse.ArgumentParser()
+    add_governor_flag(sim_parser)
+    for parser in (companion_parser(), sim_parser):
+        help_text = " ".join(next(a.help for a in parser._actions if "--governor" in a.option_strings).split())
+        assert describe_presets() in help_text
+
+
 def test_a_stored_flown_cell_is_reused_only_for_the_same_governor_settings(tmp_path):
     from sitl.eval.flown import flown_cells, run_flown_cell
 

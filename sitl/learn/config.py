@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from companion.governor import GOVERNOR_PRESETS, describe_presets
 from companion.spec import CAMERA_PRESETS, DEFAULT_TASK_SPEC, MAX_FRAME_STRIDE, CameraSpec, check_frame_ages
 from sitl.cli_args import MAX_THREADS
 from sitl.learn.agent import METHODS, AgentConfig
@@ -100,8 +101,7 @@ class TrainConfig:
                                    "records it and swarm_test and the companion then apply it (docs/training.md "
                                    "'Training with the governor in the loop')")
     governor_setting: str = _param("default", "with governor: its named settings (companion.governor."
-                                              "GOVERNOR_PRESETS): default (stops 1 m short, turns away) or swarm "
-                                              "(stops 0.6 m short, never turns)")
+                                              f"GOVERNOR_PRESETS): {describe_presets()}")
     frame_stride: int = _param(1, "control steps between two of the 3 stacked depth frames (1: consecutive, the "
                                   "paper; 3: the stack spans 0.6 s; docs/training.md 'A frame stack spanning longer')")
     frame_ages: str = _param("", "age in control steps of each of the 3 stacked frames, oldest first, ending in 0, "
@@ -253,8 +253,6 @@ class TrainConfig:
             raise ValueError(f"teacher_bc_weight must be in [0, 100], got {self.teacher_bc_weight}")
         if self.circle_teacher_right and self.method != "distill" and self.teacher_bc_weight <= 0:
             raise ValueError("circle_teacher_right needs a teacher: the distill method or teacher_bc_weight > 0")
-        from companion.governor import GOVERNOR_PRESETS
-
         if self.governor_setting not in GOVERNOR_PRESETS:
             raise ValueError(f"unknown governor_setting {self.governor_setting!r}; choose one of "
                              f"{', '.join(GOVERNOR_PRESETS)}")
