@@ -129,6 +129,9 @@ def test_train_help_lists_a_recipes_stages():
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 0
     assert "recipe of 4 stages" in out.stdout and "stage 4 'mixed15'" in out.stdout
+    out = subprocess.run([sys.executable, "-m", "sitl.train", "--preset", "flown-distill", "--help"], cwd=REPO,
+                         capture_output=True, text=True, timeout=120)
+    assert "final choice: only snapshots with paper-circle-n14" in " ".join(out.stdout.split())
 
 
 def test_a_stage_is_validated_only_on_the_scenes_it_trains_on():
@@ -251,3 +254,46 @@ def test_a_resume_elsewhere_rewrites_where_every_stage_computes(tmp_path):
     for path in (tmp_path / "config.json", tmp_path / "stage1-first" / "config.json"):
         train = json.loads(path.read_text())["train"]
         assert (train["device"], train["threads"], train["seed"]) == ("cpu", 4, cfg.seed)
+
+
+def test_the_final_choice_leaves_out_snapshots_that_fail_a_gate_unless_all_do():
+    from sitl.learn.trainer import select_snapshot
+
+    rows = [{"updates": 10, "score": 0.95, "gate": {"passed": False}},
+            {"updates": 20, "score": 0.93, "gate": {"passed": True}},
+            {"updates": 30, "score": 0.90}]  # flown before gates existed: competes
+    assert select_snapshot(rows)["updates"] == 20
+    assert select_snapshot([{**row, "gate": {"passed": False}} for row in rows])["updates"] == 10
+    rescored = [{**rows[0], "rescored": {"score": 0.99}}, {**rows[1], "rescored": {"score": 0.80}}, rows[2]]
+    assert select_snapshot(rescored)["updates"] == 20  # rescored rows only, and of those the cleared one
+
+
+def test_a_recipe_flies_its_gates_on_every_last_stage_snapshot_and_records_them(tmp_path):
+    """A gate is flown once per snapshot (validation seeds), recorded in validation.json and the provenance;
+    a gate nobody clears leaves the choice to the score (said in the log), and a recipe without gates forgets them."""
+    from sitl.learn.config import SelectionGate
+
+    cfg, agent_cfg = tiny_configs(tmp_path)
+    gate = SelectionGate("paper-circle-n4", "circle", 4, "paper", camera_noise=False, min_success=0.0)
+    stages = (STAGES[0], replace(STAGES[1], gates=(gate,)))
+    messages: list[str] = []
+    path = Recipe(cfg, agent_cfg, stages, tmp_path, rescore_top=0, rescore_episodes=0, gate_episodes=2,
+                  log=messages.append).run()
+    rows = json.loads((tmp_path / "stage2-second" / "snapshots" / "validation.json").read_text())
+    assert rows and all(row["gate"]["passed"] and row["gate"]["episodes"] == 2 for row in rows)
+    assert all(set(row["gate"]["scenes"]) == {"paper-circle-n4"} for row in rows)
+    assert sum(m.startswith("gate: ") for m in messages) == len(rows)
+    recipe = load_policy(path).metadata["provenance"]["recipe"]
+    assert recipe["gates"] == {"episodes": 2, "gates": [asdict(gate)]}
+
+    messages.clear()  # a bar nobody clears: the final choice is redone, every snapshot flown again, all compete
+    Recipe(cfg, agent_cfg, (STAGES[0], replace(STAGES[1], gates=(replace(gate, min_success=1.01),))), tmp_path,
+           rescore_top=0, rescore_episodes=0, gate_episodes=2, log=messages.append).run()
+    assert not any(m.startswith("=== stage") for m in messages) and any("continuing" in m for m in messages)
+    assert sum("left out of the final choice" in m for m in messages) == len(rows)
+    assert any("no snapshot clears the gates" in m for m in messages)
+    assert (tmp_path / "policy.pt").is_file()
+
+    Recipe(cfg, agent_cfg, STAGES, tmp_path, rescore_top=0, rescore_episodes=0, log=messages.append).run()
+    rows = json.loads((tmp_path / "stage2-second" / "snapshots" / "validation.json").read_text())
+    assert not any("gate" in row for row in rows)

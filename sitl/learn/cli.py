@@ -88,6 +88,9 @@ def build_parser(preset: str = TrainConfig.preset) -> argparse.ArgumentParser:
     if stages:
         lines = [f"  stage {i + 1} '{st.name}': {st.description}; "
                  + ", ".join(f"{k}={v}" for k, v in {**st.train, **st.agent}.items()) for i, st in enumerate(stages)]
+        lines += [f"  final choice: only snapshots with {g.name} (a {g.num_uavs}-UAV {g.scenario} scene, {g.geometry} "
+                  f"geometry, camera noise {'on' if g.camera_noise else 'off'}, validation seeds) >= {g.min_success:g}"
+                  for g in stages[-1].gates]
         parser.epilog = f"preset {preset} is a recipe of {len(stages)} stages (sitl.learn.recipe):\n" + "\n".join(lines)
     parser.add_argument("--recipe-scale", type=positive_float, default=None, metavar="F",
                         help="recipe presets: multiply every stage's updates and validation interval by F "

@@ -6,6 +6,7 @@ stage a complete training run of its own (``RUN/stage<i>-<name>/``, with its con
 TensorBoard logs, validated snapshots and checkpoint) that starts from the networks the
 previous stage selected (``init_from``). After the last stage the best validated snapshots
 of that stage are flown again on more validation episodes (:func:`sitl.learn.rescore.rescore_snapshot`),
+snapshots that fail the last stage's gates (:class:`sitl.learn.config.SelectionGate`) are left out,
 the winner gets the test-seed evaluation and is exported to ``RUN/policy.pt`` with the whole
 recipe in its provenance, including the wall time from the first update to the export.
 
@@ -29,7 +30,7 @@ import numpy as np
 
 from sitl.learn.agent import AgentConfig
 from sitl.learn.config import RecipeStage, TrainConfig
-from sitl.learn.rescore import rescore_snapshot, snapshot_actor
+from sitl.learn.rescore import gate_snapshot, rescore_snapshot, snapshot_actor
 from sitl.learn.trainer import make_trainer, select_snapshot
 
 RECIPE_FILE = "recipe.json"
@@ -120,18 +121,19 @@ class Recipe:
     def __init__(self, cfg: TrainConfig, agent_cfg: AgentConfig, stages: tuple[RecipeStage, ...], run_dir: Path,
                  rescore_top: int, rescore_episodes: int, explicit: frozenset[str] = frozenset(),
                  scale: float = 1.0, log=None, evaluation_steps: int | None = None,
-                 stage_scales: tuple[float, ...] | None = None) -> None:
+                 stage_scales: tuple[float, ...] | None = None, gate_episodes: int = 100) -> None:
         """``cfg``/``agent_cfg``: the recipe's configs (preset and explicit flags, ``explicit`` naming the
         flags given); ``scale``: multiplies the stages' updates, validation intervals and every
         evaluation's episodes (a quick trial of the whole recipe); ``stage_scales``: one more factor per
         stage on its updates and validation interval (:func:`scaled_stages`); ``final_eval_episodes`` comes from ``cfg``;
-        ``evaluation_steps``: the time limit of the rescoring and the final evaluation (default: the
-        training episodes' own)."""
+        ``evaluation_steps``: the time limit of the rescoring, the gates and the final evaluation (default: the
+        training episodes' own); ``gate_episodes``: validation episodes per gate of the last stage."""
         self.cfg, self.agent_cfg, self.run_dir = cfg, agent_cfg, run_dir
         self.stages = scaled_stages(stages, scale, stage_scales, default_eval_episodes=cfg.eval_episodes)
         self.explicit, self.scale = frozenset(explicit), scale
         self.stage_scales = list(stage_scales) if stage_scales is not None else None
         self.rescore_top, self.rescore_episodes = rescore_top, scaled(rescore_episodes, scale)
+        self.gate_episodes = scaled(gate_episodes, scale)
         self.evaluation_steps = evaluation_steps
         self.final_eval_episodes = scaled(cfg.final_eval_episodes, scale) if cfg.final_eval_episodes else 0
         self.log = log or (lambda message: print(message, file=sys.stderr, flush=True))
@@ -218,6 +220,39 @@ class Recipe:
                      f"-> score {row['rescored']['score']:.3f} (training-time {row['score']:.3f})")
             (sdir / "snapshots" / "validation.json").write_text(json.dumps(rows, indent=1))
 
+    def _gate_last(self) -> None:
+        """Fly every snapshot of the last stage in its gates' scenes; the final choice skips those that fail."""
+        index = len(self.stages) - 1
+        gates = self.stages[index].gates if self.gate_episodes > 0 else ()
+        sdir = stage_dir(self.run_dir, index, self.stages[index])
+        rows = _validation_rows(sdir)
+        if not gates:  # a recipe without gates (now): results of earlier gates must not steer its choice
+            if any("gate" in row for row in rows):
+                for row in rows:
+                    row.pop("gate", None)
+                (sdir / "snapshots" / "validation.json").write_text(json.dumps(rows, indent=1))
+            return
+        saved = json.loads((sdir / "config.json").read_text())
+        cfg, agent_cfg = TrainConfig(**saved["train"]), AgentConfig(**saved["agent"])
+        steps = cfg.time_limit(self.evaluation_steps)
+        wanted = {g.name: g.min_success for g in gates}
+        for row in sorted(rows, key=lambda r: r["updates"]):
+            done = row.get("gate")
+            if done and (done["episodes"], done["max_episode_steps"],
+                         {k: v["min_success"] for k, v in done["scenes"].items()}) == (self.gate_episodes, steps, wanted):
+                continue  # done before an interruption, under these settings
+            started = time.perf_counter()
+            act = snapshot_actor(cfg, agent_cfg, sdir / "snapshots" / f"agent_{row['updates']}.pt")
+            row["gate"] = gate_snapshot(cfg, act, list(gates), self.gate_episodes, self.evaluation_steps)
+            cells = ", ".join(f"{name} {r['success_rate']:.3f} (bar {r['min_success']:g})"
+                              for name, r in row["gate"]["scenes"].items())
+            self.log(f"gate: {row['updates']} updates on {self.gate_episodes} validation episodes: {cells} -> "
+                     f"{'competes' if row['gate']['passed'] else 'left out of the final choice'} "
+                     f"({time.perf_counter() - started:.0f} s)")
+            (sdir / "snapshots" / "validation.json").write_text(json.dumps(rows, indent=1))
+        if not any(row["gate"]["passed"] for row in rows):
+            self.log("gate: no snapshot clears the gates; all of them compete in the final choice")
+
     def _export(self) -> Path:
         """Test-seed evaluation of the selected snapshot and export, with the recipe in the provenance."""
         index = len(self.stages) - 1
@@ -231,6 +266,8 @@ class Recipe:
                   "rescore": {"top": self.rescore_top, "episodes": self.rescore_episodes,
                               "scenes": [s[0] for s in self.stages[index].rescore_scenes],
                               "max_episode_steps": cfg.time_limit(self.evaluation_steps)},
+                  "gates": {"episodes": self.gate_episodes,
+                            "gates": [dataclasses.asdict(g) for g in self.stages[index].gates]},
                   "wall_time_s_before_final_evaluation": round(self.state["wall_s"], 1)}
         path = trainer.finish(recipe=recipe, evaluation_steps=self.evaluation_steps)
         for name in ("policy.pt", "final_eval.json"):  # the recipe draws its own learning curve
@@ -245,6 +282,9 @@ class Recipe:
         final_choice = {"rescore_top": self.rescore_top, "rescore_episodes": self.rescore_episodes,
                         "evaluation_steps": self.evaluation_steps, "final_eval_episodes": self.final_eval_episodes,
                         "rescore_scenes": [s[0] for s in self.stages[-1].rescore_scenes]}
+        if self.stages[-1].gates:  # (absent without gates: runs finished before gates existed stay finished)
+            final_choice["gates"] = [dataclasses.asdict(g) for g in self.stages[-1].gates]
+            final_choice["gate_episodes"] = self.gate_episodes
         if self.state.get("done") and (len(self.state["stages"]) < len(self.stages)
                                        or self.state.get("final_choice") != final_choice):
             # The recipe changed since this run finished (more stages, or another final choice):
@@ -271,6 +311,7 @@ class Recipe:
             init_from = record["snapshot"]
         if self.rescore_top > 0 and self.rescore_episodes > 0:
             self._rescore_last()
+        self._gate_last()
         path = self._export()
         self.state["wall_s"] = self._elapsed()
         self.state["done"] = True

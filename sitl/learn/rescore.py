@@ -29,7 +29,7 @@ import torch
 
 from sitl.cli_args import ArgumentParser, int_list
 from sitl.learn.agent import AgentConfig
-from sitl.learn.config import TrainConfig, make_sim_config
+from sitl.learn.config import SelectionGate, TrainConfig, make_sim_config
 from sitl.learn.trainer import (agent_actor, evaluate_scenario, load_training_file, make_agent, select_snapshot,
                                 train_governor)
 from sitl.sim.episodes import ActorFactory
@@ -83,6 +83,23 @@ def rescore_snapshot(cfg: TrainConfig, make_actor: ActorFactory, scenes: list[Sc
         results[name] = {"success_rate": summary["success_rate"], "spl": summary["spl"],
                          "success_ci95_half_width": summary["success_ci95_half_width"]}
     return {"episodes": episodes, "max_episode_steps": steps, "scenes": results, "score": selection_score(results)}
+
+
+def gate_snapshot(cfg: TrainConfig, make_actor: ActorFactory, gates: list[SelectionGate], episodes: int,
+                  max_episode_steps: int | None = None) -> dict:
+    """Success of one controller in every gate's scene on the validation seeds, and whether it clears them all.
+
+    Each gate flies the run's configuration with the gate's geometry, camera noise and number of UAVs.
+    """
+    steps = cfg.time_limit(max_episode_steps)
+    scenes = {}
+    for gate in gates:
+        gate_cfg = replace(cfg, geometry=gate.geometry, camera_noise=gate.camera_noise, num_uavs=gate.num_uavs,
+                           max_episode_steps=steps)
+        summary = evaluate_scenario(make_actor, gate_cfg, gate.scenario, episodes, VALIDATION_SEED_OFFSET + cfg.seed)
+        scenes[gate.name] = {"success_rate": summary["success_rate"], "min_success": gate.min_success}
+    return {"episodes": episodes, "max_episode_steps": steps, "scenes": scenes,
+            "passed": all(r["success_rate"] >= r["min_success"] for r in scenes.values())}
 
 
 #: The kinds of scene the selection score weighs equally, by the scene name's prefix.

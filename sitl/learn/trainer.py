@@ -160,9 +160,13 @@ def snapshot_score(row: dict) -> float:
 
 
 def select_snapshot(rows: list[dict]) -> dict:
-    """The best row of ``validation.json``; rescored rows (``sitl.rescore``) compete only among themselves."""
+    """The best row of ``validation.json``; rescored rows (``sitl.rescore``) compete only among themselves, and
+    of those, only the ones that cleared the recipe's gates (``"gate"``, :class:`sitl.learn.config.SelectionGate`)
+    unless none did."""
     rescored = [row for row in rows if "rescored" in row]
-    return max(rescored or rows, key=lambda row: (snapshot_score(row), row["updates"]))
+    pool = rescored or rows
+    cleared = [row for row in pool if row.get("gate", {}).get("passed", True)]
+    return max(cleared or pool, key=lambda row: (snapshot_score(row), row["updates"]))
 
 
 def earlier_history(path: Path, episodes: int) -> dict:
