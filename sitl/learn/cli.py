@@ -24,7 +24,8 @@ Presets (``--preset``):
   frozen convolutions, still pulled towards the teacher and validated at 40 s; circle worlds are
   taught by camera-limited ORCA that keeps right (``--circle-teacher-right``): 36 min on 2 cores, five
   seeds' paper medium 0.906 within 1.4 points, every circle of 8 at 1.000 (a method beside SAC+AE, issue 17;
-  docs/training.md "A circle teacher the camera can explain").
+  docs/training.md "A circle teacher the camera can explain"). Its final choice leaves out snapshots that
+  lose the paper's circle of 14 on validation seeds (a gate, session 43).
 * ``bundle-paper`` — a recipe: the paper-camera policy's four-stage curriculum.
 
 Everything is a command-line flag (``--help``); a run directory holds ``config.json``,
