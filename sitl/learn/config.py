@@ -446,7 +446,8 @@ PRESETS["flown-fast"]["stages"] = tuple(
 # session 39 circle worlds are taught by camera-limited ORCA keeping right, which the camera can explain.
 # Stages 3-4 validate with the protocol's 40 s limit, so the circle's score is a score (at 20 s a circle of
 # 20 m radius times out after any detour), and the final choice takes stage 4's best validated snapshot
-# without flying candidates again (that rescoring cost ~5 of 45 minutes).
+# without flying candidates again (that rescoring cost ~5 of 45 minutes), among the snapshots that clear
+# PAPER_CIRCLE_GATE (about 2 minutes).
 #: Stage 4 validates in the flown circle of 8, which every snapshot flies at 1.000, so its score cannot see the
 #: circle; the paper's circle of 14 (12 m radius, 10 m up) is denser, and a snapshot that loses it competes no
 #: more (session 43: seed 2's chosen snapshot read 0.909 there on validation, 0.894 on test seeds, where its
