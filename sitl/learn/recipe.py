@@ -235,12 +235,11 @@ class Recipe:
         saved = json.loads((sdir / "config.json").read_text())
         cfg, agent_cfg = TrainConfig(**saved["train"]), AgentConfig(**saved["agent"])
         steps = cfg.time_limit(self.evaluation_steps)
-        wanted = {g.name: g.min_success for g in gates}
+        wanted = (self.gate_episodes, steps, [dataclasses.asdict(g) for g in gates])
         for row in sorted(rows, key=lambda r: r["updates"]):
             done = row.get("gate")
-            if done and (done["episodes"], done["max_episode_steps"],
-                         {k: v["min_success"] for k, v in done["scenes"].items()}) == (self.gate_episodes, steps, wanted):
-                continue  # done before an interruption, under these settings
+            if done and (done["episodes"], done["max_episode_steps"], done.get("gates")) == wanted:
+                continue  # done before an interruption, under these very gates (scene and bar)
             started = time.perf_counter()
             act = snapshot_actor(cfg, agent_cfg, sdir / "snapshots" / f"agent_{row['updates']}.pt")
             row["gate"] = gate_snapshot(cfg, act, list(gates), self.gate_episodes, self.evaluation_steps)

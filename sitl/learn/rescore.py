@@ -21,7 +21,7 @@ import argparse
 import json
 import sys
 import time
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -98,7 +98,7 @@ def gate_snapshot(cfg: TrainConfig, make_actor: ActorFactory, gates: list[Select
                            max_episode_steps=steps)
         summary = evaluate_scenario(make_actor, gate_cfg, gate.scenario, episodes, VALIDATION_SEED_OFFSET + cfg.seed)
         scenes[gate.name] = {"success_rate": summary["success_rate"], "min_success": gate.min_success}
-    return {"episodes": episodes, "max_episode_steps": steps, "scenes": scenes,
+    return {"episodes": episodes, "max_episode_steps": steps, "gates": [asdict(g) for g in gates], "scenes": scenes,
             "passed": all(r["success_rate"] >= r["min_success"] for r in scenes.values())}
 
 
