@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from sitl.eval.collision_anatomy import analyse, main, moving_in_view
+from sitl.eval.collision_anatomy import analyse, bearing_elevation_deg, main, moving_in_view
 from sitl.eval.visibility import in_view
 from sitl.sim.config import ScenarioConfig
 from sitl.eval.evaluate import EvalSettings
@@ -26,6 +26,12 @@ def test_in_view_is_the_level_camera_frustum_of_the_heading():
     assert not in_view(np.zeros(3), np.array(HALF_PI), np.array([0.0, 25.0, 0.0]), fov, fov, rng)  # beyond range
 
 
+def test_bearing_and_elevation_in_the_heading_frame():
+    assert bearing_elevation_deg(np.array([1.0, 0.0, -1.0]), 0.0) == pytest.approx((0.0, 45.0))  # ahead, 1 m up
+    assert bearing_elevation_deg(np.array([1.0, 0.0, 0.0]), HALF_PI) == pytest.approx((-90.0, 0.0))  # facing east: left
+    assert bearing_elevation_deg(np.array([0.0, 0.0, 2.0]), 0.0)[1] == pytest.approx(-90.0)  # straight below
+
+
 def test_head_on_collisions_are_seen_by_both(tmp_path, capsys):
     """Two UAVs flying straight at each other: every collision is one each saw coming, mid-way."""
     out = tmp_path / "anatomy.json"
@@ -43,6 +49,10 @@ def test_head_on_collisions_are_seen_by_both(tmp_path, capsys):
     # Both fly straight at full speed (2 m/s) into each other.
     assert 1.8 < summary["median_speed_when_saw_m_s"] <= 2.05 and 3.5 < summary["median_closing_speed_m_s"] <= 4.1
     assert summary["collider_moved_out_of_view"] == 0  # level flight along the heading
+    # 1 s before, the partner was straight ahead at the same altitude (jitter: a few degrees off).
+    assert all(abs(e["partner_bearing_deg_lookback"]) < 10 and abs(e["partner_elevation_deg_lookback"]) < 10
+               and not e["beyond_vertical_view"] for e in result["events"])
+    assert summary["neither_saw_partner_above_or_below"] == 0
     # In view from 20 m (the paper camera's range), 1-2 s after the start: 4.5-5 s (the window looked back)
     # before the collision; flying straight, neither slows down.
     assert all(4.5 <= e["warning_s"] <= 5.0 for e in result["events"])

@@ -167,6 +167,53 @@ def test_orca_fov_avoids_only_the_uavs_its_camera_covers():
     assert np.linalg.norm(behind_fov[2] - pref[2]) > 0.01  # UAV 2 sees UAV 0 ahead and (expecting help) slows a little
 
 
+@needs_rvo
+def test_orca_fov_memory_keeps_what_it_saw_and_look_around_adds_the_ring_at_the_start():
+    """UAV 0 looks north. UAV 1 starts in view ahead and then passes behind it; UAV 2 is behind it from the
+    start; UAV 3 is straight above (outside the D435's +-29 deg even all around). orca-fov knows only what is
+    in view now, orca-fov-memory keeps UAV 1 once seen, orca-fov-look-around also knows UAV 2 from the first
+    step; nobody knows UAV 3; a new episode forgets everything."""
+    from types import SimpleNamespace
+
+    from companion.spec import REALSENSE_D435
+    from sitl.eval.orca import LOOK_AROUND_PARAMS, MEMORY_PARAMS, OrcaController, OrcaParams
+
+    def env_at(uav1_north_m: float, step: int):
+        pos = np.array([[0.0, 0.0, -5.0], [uav1_north_m, 0.0, -5.0], [-3.0, 0.0, -5.0], [0.0, 0.0, -7.0]])
+        return SimpleNamespace(num_worlds=1, world_steps=np.array([step]),
+                               dynamics=SimpleNamespace(pos_ned=pos, yaw_rad=np.zeros(4)))
+
+    def knowledge(params: OrcaParams) -> list[list[bool]]:
+        ctl = OrcaController(1, 4, 0.3, 0.1, params=params, camera=REALSENSE_D435)
+        return [ctl._remembered(env_at(north, step))[0, 1:].tolist()
+                for north, step in ((3.0, 0), (-2.0, 1), (-2.0, 2), (-2.0, 0))]  # UAV 1 ahead, behind x2, new episode
+
+    assert knowledge(OrcaParams()) == [[True, False, False], [False, False, False], [False, False, False],
+                                       [False, False, False]]
+    assert knowledge(MEMORY_PARAMS) == [[True, False, False], [True, False, False], [True, False, False],
+                                        [False, False, False]]
+    assert knowledge(LOOK_AROUND_PARAMS) == [[True, True, False], [True, True, False], [True, True, False],
+                                             [True, True, False]]  # the new episode's first step looks around again
+    assert knowledge(OrcaParams(memory_s=0.15)) == [[True, False, False], [True, False, False],
+                                                    [False, False, False], [False, False, False]]  # 0.1 s yes, 0.2 s no
+    with pytest.raises(ValueError, match="memory_s"):
+        OrcaParams(memory_s=-1.0)
+
+
+@needs_rvo
+def test_orca_fov_memory_runs_as_a_reference_and_reports_its_settings():
+    """``--policy orca-fov-memory`` and ``orca-fov-look-around`` fly episodes like any reference; the infinite
+    memory is written as null (JSON has no infinity)."""
+    settings = EvalSettings(scenario=ScenarioConfig(name="random", density=0.06), num_uavs=8, episodes=4,
+                            camera="realsense_d435")
+    for name, look in (("orca-fov-memory", False), ("orca-fov-look-around", True)):
+        method = resolve_method(name)
+        info = json.loads(json.dumps(method.info(), allow_nan=False))
+        assert info["orca"]["memory_s"] is None and info["orca"]["look_around"] is look
+        summary = evaluate_method(method, settings, progress=False).summary
+        assert summary["episodes"] == 4 and 0.0 <= summary["success_rate"] <= 1.0
+
+
 def test_keep_right_turns_only_towards_uavs_ahead_that_close_in():
     """The right-of-way rule turns the preferred velocity right (NED: north -> east) for a UAV closing in
     ahead, and leaves it alone for one ahead that flies away, one behind, or one not known."""

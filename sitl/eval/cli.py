@@ -14,8 +14,10 @@ Controllers (``--policy``): a policy file (TorchScript, see docs/policy_file.md;
 only its depth camera, goal and own velocity), ``straight`` (flies straight at its goal:
 what a scenario gives for free), ``orca`` (ORCA in 3D with perfect knowledge of every
 UAV: the privileged classical reference, :mod:`sitl.eval.orca`), ``orca-fov`` (the same
-ORCA knowing only the UAVs inside its own camera's view: what the field of view allows) or
-``orca-fov-right`` (orca-fov keeping right of the UAVs it sees closing in: a right-of-way convention).
+ORCA knowing only the UAVs inside its own camera's view: what the field of view allows),
+``orca-fov-right`` (orca-fov keeping right of the UAVs it sees closing in: a right-of-way convention),
+``orca-fov-memory`` (orca-fov never forgetting a UAV it saw, tracked perfectly: what memory adds) or
+``orca-fov-look-around`` (orca-fov-memory that also knows every UAV around it at the start: a look around).
 
 ``--mavlink`` flies the same episodes with the whole product instead: the SITL vehicles
 (``sitl.vehicle``) and one real ``companion`` process per UAV, in real time over MAVLink

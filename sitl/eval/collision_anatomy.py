@@ -24,6 +24,11 @@ UAV-steps (faster than ``MOVING_M_S``) and of the distance flown whose velocity 
 UAV's camera frustum, and how much of that is vertical (climbing or descending too steeply for the
 camera's vertical field of view) and within the first ``EARLY_S`` of the episode.
 
+For each collision it records where the partner was at the start of that last second, seen from the
+collider (bearing and elevation in its heading frame), and counts the unseen collisions whose partner
+was then above or below the camera's vertical view: the blind spot of a level forward camera, where a
+UAV climbing or descending meets one it never had in its image.
+
 Prints the tables and writes ``--json`` if given. Geometry test: the partner's centre inside
 the camera's horizontal and vertical field of view (heading frame, level camera as in the
 simulator) and within its range.
@@ -78,6 +83,13 @@ def moving_in_view(velocity_ned: np.ndarray, yaw_rad: float, hfov_rad: float, vf
     return bool(in_frustum(ned_to_frd(np.asarray(velocity_ned), yaw_rad), math.tan(hfov_rad / 2), math.tan(vfov_rad / 2)))
 
 
+def bearing_elevation_deg(offset_ned: np.ndarray, yaw_rad: float) -> tuple[float, float]:
+    """Bearing (deg, right +) and elevation (deg, up +) of ``offset_ned`` in the heading frame of a UAV at ``yaw_rad``."""
+    frd = ned_to_frd(np.asarray(offset_ned, dtype=float), yaw_rad)
+    return (math.degrees(math.atan2(frd[1], frd[0])),
+            math.degrees(math.atan2(-frd[2], math.hypot(frd[0], frd[1]))))
+
+
 class CollisionObserver:
     """Records, around every control step, what it needs to classify UAV-UAV collisions.
 
@@ -127,6 +139,9 @@ class CollisionObserver:
             first = sighted[0] if sighted else None
             velocity = (after - before) / self.dt
             heading_seen = moving_in_view(velocity[r], self.recent[-1][1][r], self.hfov, self.vfov)
+            # Where the partner was 1 s before, seen from the collider (heading frame): to the side, or above/below?
+            then_pos, then_yaw = window[0]
+            bearing_deg, elevation_deg = bearing_elevation_deg(then_pos[partner] - then_pos[r], float(then_yaw[r]))
             offset = before[partner] - before[r]
             gap_rate = np.dot(velocity[partner] - velocity[r], offset) / max(np.linalg.norm(offset), 1e-6)
             if first is None:
@@ -143,7 +158,11 @@ class CollisionObserver:
                                 "time_s": round(int(env.world_steps[world]) * self.dt, 2),
                                 "collider_saw_partner": bool(saw), "partner_saw_collider": bool(seen),
                                 "partner_was_done": bool(not acting[partner]),
-                                "collider_moved_in_view": heading_seen})
+                                "collider_moved_in_view": heading_seen,
+                                "partner_bearing_deg_lookback": round(bearing_deg, 1),
+                                "partner_elevation_deg_lookback": round(elevation_deg, 1),
+                                "vertical_gap_m": round(float(before[r, 2] - before[partner, 2]), 2),  # partner above: +
+                                "beyond_vertical_view": bool(abs(elevation_deg) > math.degrees(self.vfov) / 2)})
 
 
 class TimeoutObserver:
@@ -286,6 +305,9 @@ def summarize_events(events: list[dict], uav_episodes: int) -> dict:
         "collider_saw_partner": count(lambda e: e["collider_saw_partner"]),
         "only_partner_saw": count(lambda e: not e["collider_saw_partner"] and e["partner_saw_collider"]),
         "neither_saw": count(lambda e: not e["collider_saw_partner"] and not e["partner_saw_collider"]),
+        # a level forward camera's blind spot: the partner above or below its vertical view a second before
+        "neither_saw_partner_above_or_below": count(lambda e: not e["collider_saw_partner"]
+                                                    and not e["partner_saw_collider"] and e["beyond_vertical_view"]),
         "with_a_finished_uav": count(lambda e: e["partner_was_done"]),
         # e.g. climbing or descending steeply at low forward speed: outside a D435's +-29 deg
         "collider_moved_out_of_view": count(lambda e: not e["collider_moved_in_view"]),
@@ -316,6 +338,8 @@ def format_table(result: dict) -> str:
             (f"collider had the partner in view (last {result['lookback_s']:g} s)", s["collider_saw_partner"]),
             ("only the partner had the collider in view", s["only_partner_saw"]),
             ("neither had the other in view", s["neither_saw"]),
+            (f"... and the partner was above or below the collider's vertical view {result['lookback_s']:g} s before",
+             s["neither_saw_partner_above_or_below"]),
             ("partner had already finished (hovering at its goal)", s["with_a_finished_uav"]),
             ("collider was moving outside its camera's view (its velocity's direction)",
              s["collider_moved_out_of_view"])]

@@ -1,6 +1,6 @@
 """What flies the swarm in an evaluation: a policy file or a reference controller, as a :class:`Method`.
 
-``resolve_method("straight" | "orca" | "orca-fov" | "orca-fov-right" | PATH)`` loads and checks it; ``Method.make_actor(env)``
+``resolve_method("straight" | "orca" | "orca-fov" | ... | PATH)`` (:data:`BASELINES` or a policy file) loads and checks it; ``Method.make_actor(env)``
 builds its :data:`sitl.sim.episodes.Actor` for one environment.
 """
 
@@ -21,10 +21,10 @@ from sitl.sim.episodes import Actor, ActorFactory, governed_actor
 DEFAULT_POLICY = Path("models/policy.pt")
 
 
-BASELINES = ("straight", "orca", "orca-fov", "orca-fov-right")
-#: The ORCA references (sitl.eval.orca): all UAVs known, or only those in the camera's view (and
-#: keeping right when one of them closes in).
-ORCA_BASELINES = ("orca", "orca-fov", "orca-fov-right")
+BASELINES = ("straight", "orca", "orca-fov", "orca-fov-right", "orca-fov-memory", "orca-fov-look-around")
+#: The ORCA references (sitl.eval.orca): all UAVs known, or only those in the camera's view (keeping right
+#: when one of them closes in; or never forgetting one it saw, after a look around at the start or without).
+ORCA_BASELINES = ("orca", "orca-fov", "orca-fov-right", "orca-fov-memory", "orca-fov-look-around")
 #: Appended to a controller's label when the speed governor follows it (``+governor-NAME`` for a preset other
 #: than the default, ``companion.governor.GOVERNOR_PRESETS``).
 GOVERNED_SUFFIX = "+governor"
@@ -59,7 +59,7 @@ class Method:
             from sitl.eval.orca import baseline_orca
 
             params, _, sees_obstacles = baseline_orca(self.label)
-            out["orca"] = dataclasses.asdict(params) | {"sees_obstacles": sees_obstacles}
+            out["orca"] = params.to_dict() | {"sees_obstacles": sees_obstacles}
         return out
 
     def make_actor(self, env: SwarmEnv) -> Actor:
@@ -154,12 +154,13 @@ def missing_policy_message(path: str | Path) -> str:
     return (f"policy file {path} not found. Train one (python -m sitl.train, which writes RUN_DIR/policy.pt, "
             f"then copy it to {DEFAULT_POLICY}) or choose another controller: --policy straight (no avoidance), "
             "--policy orca (privileged ORCA), --policy orca-fov (ORCA knowing only the UAVs in its camera's view), "
-            "--policy orca-fov-right (orca-fov keeping right of the UAVs it sees closing in) "
-            "or --policy PATH (a policy file)")
+            "--policy orca-fov-right (orca-fov keeping right of the UAVs it sees closing in), "
+            "--policy orca-fov-memory (orca-fov never forgetting a UAV it saw), --policy orca-fov-look-around "
+            "(orca-fov-memory after a look all around at the start) or --policy PATH (a policy file)")
 
 
 def resolve_method(spec: str | Path) -> Method:
-    """``straight``, ``orca``, ``orca-fov``, ``orca-fov-right`` or a policy file (loaded and validated) as a :class:`Method`."""
+    """A reference controller (:data:`BASELINES`) or a policy file (loaded and validated) as a :class:`Method`."""
     if str(spec) in BASELINES:
         if str(spec) in ORCA_BASELINES:
             from sitl.eval.orca import _import_rvo

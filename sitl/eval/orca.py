@@ -30,17 +30,26 @@ UAV in view is ahead and closing, the preferred velocity turns to the right. In 
 others head-on at once, a symmetric meeting that plain ORCA only resolves with reciprocity the camera cannot
 give; with the rule every UAV veers the same way and the swarm flies a roundabout. The rule is a function of
 the view, so a camera policy can imitate it (``python -m sitl.train --circle-teacher-right``).
+
+``orca-fov-memory`` gives ``orca-fov`` a perfect memory (``OrcaParams.memory_s``): a UAV it has seen once stays
+known, with its true state, for the rest of the episode (perfect tracking after one sighting: more than any
+camera pipeline delivers). ``orca-fov-look-around`` adds, at an episode's first step, every UAV in the ring all
+around it that the camera's vertical view and range cover (``OrcaParams.look_around``): a take-off that turns
+once around before it moves, at no cost in time. The two bound what memory, and memory plus a look at the
+start, can add to a forward camera's view (docs/results.md "What a forward D435 allows").
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from companion.frames import ned_to_frd
 from companion.spec import DEFAULT_ACTION_SPEC, ActionSpec, CameraSpec
-from sitl.eval.visibility import camera_fov_rad, in_view
+from sitl.eval.visibility import camera_fov_rad, in_view, in_view_all_around
 from sitl.sim.collision import nearest_obstacle_points
 
 
@@ -69,24 +78,49 @@ class OrcaParams:
     #: known UAV is ahead of it and closing; 0 = plain ORCA. 40 deg was chosen on the flown circle of 8
     #: (evaluation seed 900, 200 episodes: 20 deg 0.966, 30-60 deg 1.000; docs/training.md).
     right_hand_deg: float = 0.0
+    #: Camera-limited only: a UAV seen within the last this many seconds stays known (its true state, as if
+    #: tracked perfectly after the sighting); 0 = only what is in view now, inf = since the episode began.
+    memory_s: float = 0.0
+    #: Camera-limited only: at an episode's first step each UAV also knows every UAV in the ring all around it
+    #: that its camera's vertical view and range cover (a take-off that turns once around before it moves).
+    look_around: bool = False
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.right_hand_deg <= 90.0:
             raise ValueError(f"right_hand_deg must be in [0, 90], got {self.right_hand_deg}")
+        if math.isnan(self.memory_s) or self.memory_s < 0.0:
+            raise ValueError(f"memory_s must be >= 0 (inf: the whole episode), got {self.memory_s}")
+
+    def to_dict(self) -> dict:
+        """The settings for JSON (an infinite memory as null: JSON has no infinity)."""
+        return {k: (None if isinstance(v, float) and math.isinf(v) else v) for k, v in dataclasses.asdict(self).items()}
+
+    @property
+    def remembers(self) -> bool:
+        """Whether a camera-limited UAV knows more than what is in its view at this step."""
+        return self.memory_s > 0.0 or self.look_around
 
 
 #: ``orca-fov-right``'s settings: orca-fov with the right-of-way convention.
 RIGHT_HAND_PARAMS = OrcaParams(right_hand_deg=40.0)
+#: ``orca-fov-memory``'s and ``orca-fov-look-around``'s settings: orca-fov that never forgets a UAV it saw.
+MEMORY_PARAMS = OrcaParams(memory_s=math.inf)
+LOOK_AROUND_PARAMS = OrcaParams(memory_s=math.inf, look_around=True)
 
 
 def baseline_orca(name: str) -> tuple[OrcaParams, bool, bool]:
-    """The reference ``name`` (``orca``, ``orca-fov``, ``orca-fov-right``) as (params, camera_limited, see_obstacles)."""
+    """The reference ``name`` (``orca``, ``orca-fov``, ``orca-fov-right``, ``orca-fov-memory``, ``orca-fov-look-around``)
+    as (params, camera_limited, see_obstacles)."""
     if name == "orca":
         return OrcaParams(), False, True
     if name == "orca-fov":
         return OrcaParams(), True, False
     if name == "orca-fov-right":
         return RIGHT_HAND_PARAMS, True, False
+    if name == "orca-fov-memory":
+        return MEMORY_PARAMS, True, False
+    if name == "orca-fov-look-around":
+        return LOOK_AROUND_PARAMS, True, False
     raise ValueError(f"unknown ORCA reference {name!r}")
 
 
@@ -176,6 +210,8 @@ class OrcaController:
         rvo = _import_rvo()
         self.params, self.spec, self.camera, self.see_obstacles = params, spec, camera, see_obstacles
         self.n = uavs_per_world
+        self.control_period_s = control_period_s
+        self._age_s: np.ndarray | None = None  # [worlds, n, n]: since UAV i last saw UAV j (with params.remembers)
         radius = collision_radius_m + params.radius_margin_m
         self._sims = []
         for _ in range(num_worlds):
@@ -223,13 +259,14 @@ class OrcaController:
 
     def new_velocities(self, pos_ned: np.ndarray, vel_ned: np.ndarray, goal_ned: np.ndarray,
                        acting: np.ndarray, present: np.ndarray, yaw_rad: np.ndarray | None = None,
-                       obstacle_points_ned: np.ndarray | None = None) -> np.ndarray:
+                       obstacle_points_ned: np.ndarray | None = None, known: np.ndarray | None = None) -> np.ndarray:
         """ORCA's collision-free velocities [M, 3] (NED) for the acting UAVs (zero elsewhere).
 
         With a ``camera`` each acting UAV is solved on its own, knowing only itself and the
         present UAVs inside its camera frustum (``yaw_rad`` [M] gives the headings).
         ``obstacle_points_ned`` [M, 3] (``see_obstacles``): each UAV's nearest obstacle point, ``inf``
-        where its world has none.
+        where its world has none. ``known`` [M, n] (with a ``camera``): the UAVs of its world each UAV knows,
+        instead of those in its frustum now (:meth:`act_env` passes its memory).
         """
         if self.see_obstacles and obstacle_points_ned is None:
             raise ValueError("this ORCA sees the obstacles: give obstacle_points_ned (act_env computes them)")
@@ -257,13 +294,16 @@ class OrcaController:
                     out[b * n + i] = sim.getAgentVelocity(int(i))
                 continue
             p, yaw = pos_ned[rows], yaw_rad[rows]
-            seen = in_view(p[:, None], yaw[:, None], p[None, :], hfov, vfov, self.camera.max_range_m)  # [i, j]
+            if known is not None:
+                seen = known[rows]
+            else:
+                seen = in_view(p[:, None], yaw[:, None], p[None, :], hfov, vfov, self.camera.max_range_m)  # [i, j]
             if right > 0.0:
                 pref[rows] = keep_right(pref[rows], p, vel[rows], seen & present[rows][None], right)
             for i in np.flatnonzero(acting[rows]):
-                known = seen[i] & present[rows]
-                known[i] = True
-                self._load(sim, b, pos_ned, vel, pref, known)
+                known_i = seen[i] & present[rows]
+                known_i[i] = True
+                self._load(sim, b, pos_ned, vel, pref, known_i)
                 if self.see_obstacles:  # its own nearest obstacle point only (the others' are parked)
                     self._load_obstacle_points(sim, pos_ned[rows], obstacle_points_ned[rows], np.arange(n) == i)
                 sim.doStep()
@@ -280,8 +320,29 @@ class OrcaController:
             points = nearest_obstacle_points(d.pos_ned.reshape(worlds, self.n, 3), env.boxes,
                                              env.cylinders).reshape(-1, 3)
         acting = env.acting if acting is None else acting
-        vel = self.new_velocities(d.pos_ned, d.vel_ned, env.goal_ned, acting, env.present, d.yaw_rad, points)
+        known = self._remembered(env) if self.camera is not None and self.params.remembers else None
+        vel = self.new_velocities(d.pos_ned, d.vel_ned, env.goal_ned, acting, env.present, d.yaw_rad, points, known)
         return velocity_to_action(vel, d.yaw_rad, self.params, self.spec)
+
+    def _remembered(self, env) -> np.ndarray:
+        """[M, n]: the UAVs each UAV has seen within ``params.memory_s`` (and, with ``look_around``, all around it
+        at its episode's first step). Called once per control step; a world whose episode starts forgets."""
+        w, n = env.num_worlds, self.n
+        pos = env.dynamics.pos_ned.reshape(w, n, 3)
+        yaw = env.dynamics.yaw_rad.reshape(w, n)
+        hfov, vfov = camera_fov_rad(self.camera)
+        rng = self.camera.max_range_m
+        seen = in_view(pos[:, :, None], yaw[:, :, None], pos[:, None, :], hfov, vfov, rng)  # [w, i, j]
+        if self._age_s is None or self._age_s.shape != seen.shape:
+            self._age_s = np.full(seen.shape, np.inf)
+        first = np.asarray(env.world_steps) == 0
+        self._age_s[first] = np.inf
+        if self.params.look_around and first.any():
+            seen[first] |= in_view_all_around(pos[first][:, :, None], pos[first][:, None, :], vfov, rng)
+        self._age_s += self.control_period_s
+        self._age_s[seen] = 0.0
+        known = np.isfinite(self._age_s) & (self._age_s <= self.params.memory_s)  # inf: never seen (this episode)
+        return known.reshape(w * n, n)
 
 
 def orca_actor(env, params: OrcaParams = OrcaParams(), camera_limited: bool = False, see_obstacles: bool = False):

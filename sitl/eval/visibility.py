@@ -32,3 +32,11 @@ def in_view(pos_ned: np.ndarray, yaw_rad: np.ndarray, other_ned: np.ndarray, hfo
     d = other_ned - pos_ned
     return (in_frustum(ned_to_frd(d, yaw_rad), math.tan(hfov_rad / 2), math.tan(vfov_rad / 2))
             & (np.linalg.norm(d, axis=-1) <= max_range_m))
+
+
+def in_view_all_around(pos_ned: np.ndarray, other_ned: np.ndarray, vfov_rad: float, max_range_m: float) -> np.ndarray:
+    """Whether each ``other_ned`` point lies in the ring a level camera with this vertical view and range sweeps
+    when it turns once around (any bearing, elevation within +-vfov/2). Shapes broadcast as :func:`in_view`."""
+    d = other_ned - pos_ned
+    horizontal = np.hypot(d[..., 0], d[..., 1])
+    return (np.abs(d[..., 2]) <= horizontal * math.tan(vfov_rad / 2)) & (np.linalg.norm(d, axis=-1) <= max_range_m)
