@@ -15,16 +15,17 @@ import numpy as np
 
 from companion.governor import DEFAULT_GOVERNOR, GovernorSpec, governor_name
 from companion.spec import CameraSpec
+from sitl.eval.orca import ORCA_REFERENCES
 from sitl.sim.env import Observation, SwarmEnv
 from sitl.sim.episodes import Actor, ActorFactory, governed_actor
 
 DEFAULT_POLICY = Path("models/policy.pt")
 
 
-BASELINES = ("straight", "orca", "orca-fov", "orca-fov-right", "orca-fov-memory", "orca-fov-look-around")
 #: The ORCA references (sitl.eval.orca): all UAVs known, or only those in the camera's view (keeping right
 #: when one of them closes in; or never forgetting one it saw, after a look around at the start or without).
-ORCA_BASELINES = ("orca", "orca-fov", "orca-fov-right", "orca-fov-memory", "orca-fov-look-around")
+ORCA_BASELINES = tuple(ORCA_REFERENCES)
+BASELINES = ("straight", *ORCA_BASELINES)
 #: Appended to a controller's label when the speed governor follows it (``+governor-NAME`` for a preset other
 #: than the default, ``companion.governor.GOVERNOR_PRESETS``).
 GOVERNED_SUFFIX = "+governor"

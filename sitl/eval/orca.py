@@ -108,20 +108,23 @@ MEMORY_PARAMS = OrcaParams(memory_s=math.inf)
 LOOK_AROUND_PARAMS = OrcaParams(memory_s=math.inf, look_around=True)
 
 
+#: The ORCA references by ``--policy`` name: (params, camera_limited, see_obstacles). The one list of them
+#: (``sitl.eval.methods.ORCA_BASELINES`` is its keys).
+ORCA_REFERENCES: dict[str, tuple[OrcaParams, bool, bool]] = {
+    "orca": (OrcaParams(), False, True),
+    "orca-fov": (OrcaParams(), True, False),
+    "orca-fov-right": (RIGHT_HAND_PARAMS, True, False),
+    "orca-fov-memory": (MEMORY_PARAMS, True, False),
+    "orca-fov-look-around": (LOOK_AROUND_PARAMS, True, False),
+}
+
+
 def baseline_orca(name: str) -> tuple[OrcaParams, bool, bool]:
-    """The reference ``name`` (``orca``, ``orca-fov``, ``orca-fov-right``, ``orca-fov-memory``, ``orca-fov-look-around``)
-    as (params, camera_limited, see_obstacles)."""
-    if name == "orca":
-        return OrcaParams(), False, True
-    if name == "orca-fov":
-        return OrcaParams(), True, False
-    if name == "orca-fov-right":
-        return RIGHT_HAND_PARAMS, True, False
-    if name == "orca-fov-memory":
-        return MEMORY_PARAMS, True, False
-    if name == "orca-fov-look-around":
-        return LOOK_AROUND_PARAMS, True, False
-    raise ValueError(f"unknown ORCA reference {name!r}")
+    """The reference ``name`` (a key of :data:`ORCA_REFERENCES`) as (params, camera_limited, see_obstacles)."""
+    try:
+        return ORCA_REFERENCES[name]
+    except KeyError:
+        raise ValueError(f"unknown ORCA reference {name!r}") from None
 
 
 def _import_rvo():
