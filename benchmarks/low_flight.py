@@ -36,6 +36,7 @@ sys.path.insert(0, str(REPO))
 
 from tests.companion_helpers import Processes, free_udp_ports, read_jsonl  # noqa: E402  (the tests' process helpers)
 from companion.policy import load_policy  # noqa: E402
+from companion.spec import preset_for_camera  # noqa: E402
 
 TARGET_FLIGHT_S = 20.0  # issue 15: the 2 m takeoff flight of 15 m arrives within 20 s
 FLIGHT_TIMEOUT_S = 120.0
@@ -43,8 +44,7 @@ FLIGHT_TIMEOUT_S = 120.0
 
 def vehicle_camera(policy: Path) -> str:
     """The ``sitl.vehicle --camera`` preset that carries ``policy``'s field of view."""
-    cam = load_policy(policy).camera
-    return "paper" if cam.vfov_deg is None or cam.vfov_deg >= 89.0 else "realsense_d435"
+    return preset_for_camera(load_policy(policy).camera)
 
 
 def fly(policy: Path, camera: str, altitude_m: float, distance_m: float, folder: Path,

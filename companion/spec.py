@@ -6,6 +6,7 @@ metadata and the onboard companion. Frames are defined in :mod:`companion.frames
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import asdict, dataclass
 
@@ -251,12 +252,41 @@ REALSENSE_D435 = CameraSpec(width=32, height=20, hfov_deg=87.0, vfov_deg=58.0, m
 #: the datasheet's 87 x 58 deg is the guaranteed field, 90 x 58.7 deg what units deliver). The
 #: companion crops it to the policy's 87 x 58 deg and min-pools it to 32x20.
 REALSENSE_D435_SENSOR = CameraSpec(width=160, height=90, hfov_deg=90.0, max_range_m=10.0, min_range_m=0.2)
+#: A wide-angle stereo depth camera as the policy sees it: 110 x 70 deg, usable range 0.2-12 m,
+#: the depth field of view ("up to 110 (H) x 70 (V)") and ideal depth range Stereolabs states for
+#: its wide-lens ZED X / ZED 2i (docs "Depth Sensing" and "Depth Settings"). Rectification can
+#: cut a unit's field below that: check your unit's intrinsics (the companion refuses a camera
+#: narrower than the policy's). Min-pooled to the D435 preset's 32 x 20 pixels (~3.4 deg per
+#: pixel, coarser than the D435's 2.7) so that training costs the same. The simulator gives it
+#: the D435's stereo noise model (50 mm baseline), a conservative stand-in for a 120 mm baseline.
+WIDE_STEREO = CameraSpec(width=32, height=20, hfov_deg=110.0, vfov_deg=70.0, max_range_m=12.0,
+                         min_range_m=0.2, frames=3, mount_pitch_deg=0.0)
+#: The image a simulated wide stereo camera sends to the companion (``sitl.vehicle --camera
+#: wide_stereo``): 160 x 90 square pixels at 112 deg horizontal (79.7 deg vertical), which the
+#: companion crops to the policy's 110 x 70 deg.
+WIDE_STEREO_SENSOR = CameraSpec(width=160, height=90, hfov_deg=112.0, max_range_m=12.0, min_range_m=0.2)
 #: The camera presets by name (``--camera NAME`` in sitl's command lines). ``paper``: the
 #: paper's 90 x 90 deg square camera with a 20 m range, the version-1 policy file's camera.
-CAMERA_PRESETS: dict[str, CameraSpec] = {"paper": CameraSpec(), "realsense_d435": REALSENSE_D435}
+CAMERA_PRESETS: dict[str, CameraSpec] = {"paper": CameraSpec(), "realsense_d435": REALSENSE_D435,
+                                         "wide_stereo": WIDE_STEREO}
 #: The image each preset's sensor delivers (what ``sitl.vehicle`` renders and sends): the paper
 #: camera is rendered at the policy's own resolution, a real sensor at its own, wider, geometry.
-SENSOR_PRESETS: dict[str, CameraSpec] = {"paper": CameraSpec(), "realsense_d435": REALSENSE_D435_SENSOR}
+SENSOR_PRESETS: dict[str, CameraSpec] = {"paper": CameraSpec(), "realsense_d435": REALSENSE_D435_SENSOR,
+                                         "wide_stereo": WIDE_STEREO_SENSOR}
+
+
+def preset_for_camera(camera: CameraSpec) -> str:
+    """The name of the camera preset whose field of view and range ``camera`` has (resolution, stack and
+    mount pitch aside): which sensor ``sitl.vehicle --camera`` must carry for a policy. Raises
+    ``ValueError`` when no preset matches."""
+    def view(c: CameraSpec) -> tuple[float, float, float]:
+        return round(c.hfov_deg, 3), round(c.vertical_fov_deg, 3), round(c.max_range_m, 3)
+
+    for name, preset in CAMERA_PRESETS.items():
+        if view(preset) == view(dataclasses.replace(camera, width=preset.width, height=preset.height)):
+            return name
+    raise ValueError(f"no camera preset has a {camera.hfov_deg:g} x {camera.vertical_fov_deg:.1f} deg field of view "
+                     f"with a {camera.max_range_m:g} m range; presets: {', '.join(CAMERA_PRESETS)}")
 
 
 @dataclass(frozen=True)

@@ -280,7 +280,7 @@ def add_governor_flag(parser: argparse.ArgumentParser, extra_help: str = "") -> 
 
 
 def camera_preset(text: str) -> str:
-    """The name of a camera preset (``companion.spec.CAMERA_PRESETS``: paper, realsense_d435)."""
+    """The name of a camera preset (a key of ``companion.spec.CAMERA_PRESETS``)."""
     from companion.spec import CAMERA_PRESETS
 
     if text not in CAMERA_PRESETS:

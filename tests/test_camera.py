@@ -199,16 +199,19 @@ def test_bad_arguments():
         CameraSpec(hfov_deg=200)
 
 
-def test_a_simulated_d435_image_becomes_what_the_policy_was_trained_on():
-    """sitl.vehicle's 160x90 D435 image, through the companion's converter, matches the policy camera's render."""
+@pytest.mark.parametrize("preset", ["realsense_d435", "wide_stereo"])
+def test_a_simulated_real_sensor_image_becomes_what_the_policy_was_trained_on(preset):
+    """sitl.vehicle's 160x90 image of a real sensor (a D435, a wide stereo camera), through the companion's
+    converter (cropped to the policy's field in both axes, min-pooled), matches the policy camera's render."""
     from companion.depth_sources import DepthConverter
-    from companion.spec import REALSENSE_D435, REALSENSE_D435_SENSOR
+    from companion.spec import CAMERA_PRESETS, SENSOR_PRESETS
 
+    policy_cam, sensor_cam = CAMERA_PRESETS[preset], SENSOR_PRESETS[preset]
     pos = np.array([[0.0, 0.0, -2.5], [5.0, 1.0, -2.5]])  # 2.5 m up, a UAV 5 m ahead, slightly right
-    sensor = DepthCamera(REALSENSE_D435_SENSOR, 2).render(pos, np.zeros(2), 2)[0]
-    converted = DepthConverter(REALSENSE_D435, max_invalid_fraction=1.0).convert(sensor, REALSENSE_D435_SENSOR.hfov_deg)
-    trained = DepthCamera(REALSENSE_D435, 4).render(pos, np.zeros(2), 2)[0]
-    assert converted.shape == trained.shape == (REALSENSE_D435.height, REALSENSE_D435.width)
+    sensor = DepthCamera(sensor_cam, 2).render(pos, np.zeros(2), 2)[0]
+    converted = DepthConverter(policy_cam, max_invalid_fraction=1.0).convert(sensor, sensor_cam.hfov_deg)
+    trained = DepthCamera(policy_cam, 4).render(pos, np.zeros(2), 2)[0]
+    assert converted.shape == trained.shape == (policy_cam.height, policy_cam.width)
     assert converted.min() == pytest.approx(trained.min(), abs=0.05)  # the UAV, ~4.7 m
     # Same picture: the ground rows and the UAV's pixels agree to within a pixel's footprint.
     assert np.mean(np.abs(converted - trained) < 0.5) > 0.9

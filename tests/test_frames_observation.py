@@ -190,6 +190,20 @@ def test_crop_to_both_fields_of_view_of_a_realsense():
     assert crop_to_hfov(np.ones((72, 160), np.float32), 90.0, REALSENSE_D435, source_vfov_deg=60.0).shape[0] == 69
 
 
+def test_preset_for_camera_names_the_sensor_a_policy_needs():
+    import dataclasses
+
+    from companion.spec import CAMERA_PRESETS, WIDE_STEREO, preset_for_camera
+
+    for name, preset in CAMERA_PRESETS.items():
+        assert preset_for_camera(preset) == name
+    # Another grid, stack or mount pitch is the same sensor; another field of view or range is not.
+    assert preset_for_camera(dataclasses.replace(WIDE_STEREO, width=48, height=32, frames=4,
+                                                 mount_pitch_deg=5.0)) == "wide_stereo"
+    with pytest.raises(ValueError, match=r"^no camera preset has a 110 x 80\.0 deg field of view with a 12 m range"):
+        preset_for_camera(dataclasses.replace(WIDE_STEREO, vfov_deg=80.0))
+
+
 def test_blinded_check_default_is_off_for_a_real_sensor_only():
     from companion.observation import default_max_invalid_fraction
     from companion.spec import MAX_INVALID_DEPTH_FRACTION, REALSENSE_D435

@@ -42,7 +42,7 @@ import sys
 from pathlib import Path
 
 from companion.governor import GOVERNOR_PRESETS
-from companion.spec import DEFAULT_TASK_SPEC
+from companion.spec import CAMERA_PRESETS, DEFAULT_TASK_SPEC
 from sitl.cli_args import (
     add_governor_flag,
     ArgumentParser,
@@ -91,10 +91,10 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dynamics", choices=DYNAMICS_NAMES, default=DYNAMICS_NAMES[0],
                         help="UAV dynamics (default kinematic)")
     parser.add_argument("--camera", type=camera_preset, default=None,
-                        help="camera preset the UAVs carry: paper or realsense_d435 (default: the policy's own camera, "
+                        help=f"camera preset the UAVs carry: {', '.join(CAMERA_PRESETS)} (default: the policy's own camera, "
                              "paper for the references); a policy must fit in it (its FOV cut from the camera's)")
     parser.add_argument("--camera-noise", action=argparse.BooleanOptionalAction, default=None,
-                        help="stereo depth noise with holes (default: on with --camera realsense_d435, else off)")
+                        help="stereo depth noise with holes (default: on with a real sensor's --camera, off with paper)")
     parser.add_argument("--max-steps", type=int_range(1, MAX_EPISODE_STEPS), default=DEFAULT_TASK_SPEC.max_episode_steps,
                         help=f"episode time limit in control steps (default {DEFAULT_TASK_SPEC.max_episode_steps} = "
                              f"{DEFAULT_TASK_SPEC.max_episode_steps / 10:g} s at 10 Hz)")
@@ -406,7 +406,7 @@ def parse_flown_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--seed", type=int_range(0), default=0,
                         help=f"evaluation seed; the simulator uses {EVAL_SEED_OFFSET} + SEED, disjoint from training")
     parser.add_argument("--camera", type=camera_preset, default=None,
-                        help="camera preset the UAVs carry: paper or realsense_d435 (default: the policy's own, "
+                        help=f"camera preset the UAVs carry: {', '.join(CAMERA_PRESETS)} (default: the policy's own, "
                              "paper for the references; orca-fov avoids what this camera covers)")
     parser.add_argument("--camera-noise", action=argparse.BooleanOptionalAction, default=True,
                         help="stereo depth noise and dropouts (default on: a real camera)")

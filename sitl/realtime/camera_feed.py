@@ -65,7 +65,8 @@ def add_camera_arguments(parser: argparse.ArgumentParser, frame: str = "") -> No
     spec = SENSOR_PRESETS[DEFAULT_SENSOR]
     parser.add_argument("--camera", type=camera_preset, default=DEFAULT_SENSOR,
                         help="the depth sensor each vehicle carries: realsense_d435 (160x90 at 90 x 58.7 deg, 0.2-10 m, "
-                             "what the companion crops to the bundled policy's 87 x 58 deg) or paper (32x32, 90 x 90 deg, "
+                             "what the companion crops to the bundled policy's 87 x 58 deg), wide_stereo (160x90 at "
+                             "112 x 79.7 deg, 0.2-12 m, cropped to 110 x 70 deg) or paper (32x32, 90 x 90 deg, "
                              "20 m: the paper camera's policies); --camera-size, --hfov and --max-range override its "
                              f"values (default {DEFAULT_SENSOR})")
     parser.add_argument("--camera-hz", type=float_range(0.0, MAX_CAMERA_HZ, low_open=True), default=DEFAULT_CAMERA_HZ,
