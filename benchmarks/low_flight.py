@@ -10,8 +10,8 @@ the vehicle's truth trace (10 Hz):
   old paper-camera policy climbed from 3 m to 5.3 m and crept the last metre: 48 s for 15 m);
 * ``arrival_error_m``: the truth distance to the goal when arrival was declared.
 
-The vehicle carries the sensor the policy was trained for (``--camera`` of ``sitl.vehicle``:
-``realsense_d435`` for a policy with a real camera's field of view, ``paper`` otherwise;
+The vehicle carries the sensor the policy was trained for (``--camera`` of ``sitl.vehicle``: the
+preset with the policy's field of view and range, :func:`companion.spec.preset_for_camera`;
 ideal depth). Target (issue 15): the 2 m flight of 15 m arrives within 20 s. The last line of
 output is one JSON object.
 
