@@ -104,7 +104,10 @@ def main() -> None:
         raise SystemExit(f"error: policy file {args.policy} not found")
     if min(altitudes) < 1.0 or distance <= 0:
         raise SystemExit("error: --altitudes must be >= 1 m and --distance > 0")
-    camera = vehicle_camera(args.policy)
+    try:
+        camera = vehicle_camera(args.policy)
+    except ValueError as exc:  # not a policy file, or a camera no simulated sensor carries
+        raise SystemExit(f"error: {exc}") from None
     rows = []
     with tempfile.TemporaryDirectory(prefix="low_flight-") as scratch:
         base = args.out or Path(scratch)
