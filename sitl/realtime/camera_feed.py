@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.spec import DEFAULT_CAMERA_SPEC, SENSOR_PRESETS, CameraSpec
+from companion.spec import CAMERA_PRESETS, DEFAULT_CAMERA_SPEC, SENSOR_PRESETS, CameraSpec
 from sitl.sim.camera import LANDED_CAMERA_HEIGHT_M, DepthCamera
 from sitl.cli_args import (
     MAX_CAMERA_HZ,
@@ -57,6 +57,19 @@ class CameraConfig:
         return {"size": [self.spec.width, self.spec.height], "hfov_deg": self.spec.hfov_deg, "hz": self.hz}
 
 
+def describe_sensor_presets() -> str:
+    """``--camera``'s choices for people, from :data:`SENSOR_PRESETS` and the policy cameras they carry."""
+    parts = []
+    for name, sensor in SENSOR_PRESETS.items():
+        policy = CAMERA_PRESETS[name]
+        text = (f"{name} ({sensor.width}x{sensor.height} at {sensor.hfov_deg:g} x {sensor.vertical_fov_deg:.1f} deg, "
+                f"{sensor.min_range_m:g}-{sensor.max_range_m:g} m")
+        if policy != sensor:
+            text += f", cropped to the policy's {policy.hfov_deg:g} x {policy.vertical_fov_deg:.0f} deg"
+        parts.append(text + ")")
+    return ", ".join(parts)
+
+
 def add_camera_arguments(parser: argparse.ArgumentParser, frame: str = "") -> None:
     """``--camera-hz``, ``--camera-size``, ``--hfov``, ``--max-range``, ``--supersample``, ``--cylinder``, ``--box``.
 
@@ -64,11 +77,8 @@ def add_camera_arguments(parser: argparse.ArgumentParser, frame: str = "") -> No
     """
     spec = SENSOR_PRESETS[DEFAULT_SENSOR]
     parser.add_argument("--camera", type=camera_preset, default=DEFAULT_SENSOR,
-                        help="the depth sensor each vehicle carries: realsense_d435 (160x90 at 90 x 58.7 deg, 0.2-10 m, "
-                             "what the companion crops to the bundled policy's 87 x 58 deg), wide_stereo (160x90 at "
-                             "112 x 79.7 deg, 0.2-12 m, cropped to 110 x 70 deg) or paper (32x32, 90 x 90 deg, "
-                             "20 m: the paper camera's policies); --camera-size, --hfov and --max-range override its "
-                             f"values (default {DEFAULT_SENSOR})")
+                        help=f"the depth sensor each vehicle carries: {describe_sensor_presets()}; --camera-size, "
+                             f"--hfov and --max-range override its values (default {DEFAULT_SENSOR})")
     parser.add_argument("--camera-hz", type=float_range(0.0, MAX_CAMERA_HZ, low_open=True), default=DEFAULT_CAMERA_HZ,
                         help=f"depth frame rate, up to {MAX_CAMERA_HZ:g} (default {DEFAULT_CAMERA_HZ:g}; use a multiple "
                              "of the policy's control rate)")
