@@ -65,6 +65,37 @@ def test_low_floor_fraction_oversamples_low_goals_in_training_worlds_only():
     assert make_sim_config(cfg, 1, scenario_name="random").scenario.low_floor_fraction == 0.0
 
 
+def test_density_range_draws_each_random_training_episode_at_its_own_crowding():
+    from sitl.learn.config import TrainConfig, make_sim_config, parse_density_range
+    from sitl.sim.config import DENSITIES
+    from sitl.sim.scenarios import random_box_size
+
+    assert parse_density_range("small,large") == (DENSITIES["large"], DENSITIES["small"])  # sorted
+    assert parse_density_range("0.05, medium") == (0.05, DENSITIES["medium"])
+    assert parse_density_range("") is None
+    for bad, message in (("small", "two densities"), ("small,crowded", "unknown density"), ("0,small", "> 0")):
+        with pytest.raises(ValueError, match=message):
+            parse_density_range(bad)
+    with pytest.raises(ValueError, match="density_range"):
+        TrainConfig(density_range="small,crowded")  # a bad flag fails before the run starts
+    # the box of each random episode: between the sparse and the dense box, both ends reached
+    cfg = scenario_for("flown", "mixed", circle_fraction=0.0, obstacle_fraction=0.0, density_range=(0.04, 0.1))
+    rng = np.random.default_rng(0)
+    spans = np.array([np.ptp(sample_scenario(8, cfg, rng).goal_ned[:, :2]) for _ in range(300)])
+    dense, sparse = random_box_size(8, 0.1, cfg.box_aspect)[0], random_box_size(8, 0.04, cfg.box_aspect)[0]
+    assert spans.max() <= sparse + 1e-9 and spans.max() > dense + 0.5  # sparser boxes than the densest
+    fixed = scenario_for("flown", "random", density=0.1)
+    assert max(np.ptp(sample_random(8, fixed, rng).goal_ned[:, :2]) for _ in range(300)) <= dense + 1e-9
+    # without it no extra number is drawn: the episodes are those of a config without the field
+    a = sample_scenario(8, scenario_for("flown", "random"), np.random.default_rng(9))
+    b = sample_scenario(8, scenario_for("flown", "random", density_range=None), np.random.default_rng(9))
+    assert np.array_equal(a.goal_ned, b.goal_ned)
+    # training worlds get it; validation, rescoring and tests fly their own density
+    train = TrainConfig(preset="flown-fast", density_range="large,small")
+    assert make_sim_config(train, 1).scenario.density_range == (0.04, 0.1)
+    assert make_sim_config(train, 1, scenario_name="random").scenario.density_range is None
+
+
 def test_paper_geometry_is_the_default_and_draws_the_same_episodes():
     assert scenario_for("paper", "random") == ScenarioConfig(name="random")
     a = sample_random(8, ScenarioConfig(), np.random.default_rng(3))

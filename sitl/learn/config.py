@@ -94,6 +94,9 @@ class TrainConfig:
                                             f"whose box floor is drawn within {LOW_FLOOR_BAND_M:g} m of the lowest altitude, so goals "
                                             "near the ground come up more often (validation and tests fly the "
                                             "uniform draw)")
+    density_range: str = _param("", "training worlds only: LOW,HIGH densities (small, medium, large or UAV/m^3) between "
+                                    "which each random episode's density is drawn log-uniformly instead of --density "
+                                    "(e.g. large,small; validation and tests fly their own density); empty: --density")
     randomize_dynamics: bool = _param(False, "draw each UAV's velocity lag and acceleration limits per episode "
                                              "(sitl.sim.dynamics.KinematicRandomization)")
     yaw_jitter_deg: float = _param(45.0, "random scenario: initial heading error from the goal bearing, up to +-deg")
@@ -226,7 +229,8 @@ class TrainConfig:
             raise ValueError(f"unknown geometry {self.geometry!r}; choose one of {', '.join(GEOMETRIES)}")
         # The scenario checks low_floor_fraction (its range, and a floor drawn per episode): here, so a
         # bad flag fails before the run starts.
-        scenario_for(self.geometry, "random", low_floor_fraction=self.low_floor_fraction)
+        scenario_for(self.geometry, "random", low_floor_fraction=self.low_floor_fraction,
+                     density_range=parse_density_range(self.density_range))
         if not math.isfinite(density_from_name(self.density)):
             raise ValueError(f"density must be a finite number of UAV/m^3, got {self.density!r}")
         if self.obstacle_density:
@@ -512,6 +516,8 @@ def make_sim_config(cfg: TrainConfig, num_worlds: int, record_paths: bool = Fals
     training = scenario_name is None  # randomization trains robustness; evaluations fly the nominal vehicle
     if training and cfg.low_floor_fraction > 0:
         values["low_floor_fraction"] = cfg.low_floor_fraction
+    if training and cfg.density_range:
+        values["density_range"] = parse_density_range(cfg.density_range)
     scenario = scenario_for(cfg.geometry, name, **values)
     camera = training_camera(cfg)
     randomization = KinematicRandomization() if cfg.randomize_dynamics and training else None
@@ -527,6 +533,26 @@ def make_sim_config(cfg: TrainConfig, num_worlds: int, record_paths: bool = Fals
                                          w_avoid=cfg.avoid_weight, w_blind=cfg.blind_motion_reward,
                                          w_corridor=cfg.corridor_speed_reward,
                                          avoid_counts_ground=cfg.avoid_counts_ground))
+
+
+def parse_density_range(text: str) -> tuple[float, float] | None:
+    """``"large,small"`` -> ``(0.04, 0.1)`` UAV/m^3, sorted (``ScenarioConfig.density_range``); ``""`` -> None.
+
+    Raises:
+        ValueError: not two densities separated by a comma, or one that is not a finite density.
+    """
+    if not text:
+        return None
+    parts = text.split(",")
+    if len(parts) != 2:
+        raise ValueError(f"density_range must be two densities such as large,small, got {text!r}")
+    try:
+        low, high = sorted(density_from_name(part.strip()) for part in parts)
+    except ValueError as err:
+        raise ValueError(f"density_range: {err}") from None
+    if not math.isfinite(high):
+        raise ValueError(f"density_range must be finite densities in UAV/m^3, got {text!r}")
+    return low, high
 
 
 def parse_frame_ages(text: str) -> tuple[int, ...]:

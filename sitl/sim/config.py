@@ -120,6 +120,9 @@ class ScenarioConfig:
     obstacle_clearance_m: float = 1.0  # > R + margin: free space around every start and goal
     obstacle_fraction: float = 0.0  # mixed: probability of an obstacles episode
     obstacle_density: float | None = None  # mixed: UAV/m^3 of its obstacles episodes (None: density)
+    #: random episodes (alone or in mixed): (low, high) UAV/m^3, each episode's density drawn log-uniformly
+    #: between them instead of ``density`` (a swarm is not always equally crowded); None: ``density``
+    density_range: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         if self.name not in TRAINING_SCENARIOS:
@@ -128,7 +131,7 @@ class ScenarioConfig:
             raise ValueError(f"circle_fraction must be in [0, 1], got {self.circle_fraction}")
         if not 0.0 <= self.obstacle_fraction <= 1.0 - self.circle_fraction:
             raise ValueError(f"obstacle_fraction must be in [0, 1 - circle_fraction], got {self.obstacle_fraction}")
-        for name in ("altitude_range_m", "circle_alt_range_m", "circle_radius_range_m"):
+        for name in ("altitude_range_m", "circle_alt_range_m", "circle_radius_range_m", "density_range"):
             value = getattr(self, name)
             if value is not None:
                 lo, hi = value

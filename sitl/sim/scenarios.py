@@ -183,6 +183,15 @@ def sample_circle(num_uavs: int, config: ScenarioConfig, rng: np.random.Generato
     return ScenarioSample(start, goal, _bearing_rad(start, goal), circle=True)
 
 
+def random_episode_config(config: ScenarioConfig, rng: np.random.Generator) -> ScenarioConfig:
+    """The configuration one random episode is drawn with: at a density drawn log-uniformly within
+    ``density_range`` when set (the draw is only made then, so other runs keep their episodes)."""
+    if config.density_range is None:
+        return config
+    low, high = np.log(config.density_range)
+    return dataclasses.replace(config, density=float(np.exp(rng.uniform(low, high))), density_range=None)
+
+
 def sample_scenario(num_uavs: int, config: ScenarioConfig, rng: np.random.Generator) -> ScenarioSample:
     """Draw one episode of the configured scenario."""
     if config.name == "mixed":
@@ -191,9 +200,9 @@ def sample_scenario(num_uavs: int, config: ScenarioConfig, rng: np.random.Genera
             return sample_circle(num_uavs, config, rng)
         if u < config.circle_fraction + config.obstacle_fraction:
             return sample_obstacles(num_uavs, obstacle_episode_config(config), rng)
-        return sample_random(num_uavs, config, rng)
+        return sample_random(num_uavs, random_episode_config(config, rng), rng)
     if config.name == "random":
-        return sample_random(num_uavs, config, rng)
+        return sample_random(num_uavs, random_episode_config(config, rng), rng)
     if config.name == "circle":
         return sample_circle(num_uavs, config, rng)
     if config.name == "obstacles":
