@@ -23,7 +23,14 @@ the companion run the same code on the same input):
   obstacle is in the way again, and the vehicle dithers in front of it. The turn state is per vehicle
   (:meth:`SpeedGovernor.apply`'s ``turning`` in and out; 0 at the start of a flight).
 
-It only lowers the forward speed and sets the yaw rate; climb is the policy's. "No data" pixels
+* **Climb in view** (``view_climb_margin_deg`` finite; off by default). A forward camera sees nothing
+  above or below its vertical field of view, and a UAV climbing or descending steeply there meets
+  neighbours it never had in its image (most of the dense scenes' collisions, docs/results.md "Climbing
+  only where the camera looks"). The climb rate is then capped to what keeps the flight path inside the
+  view, less the margin: ``|climb| <= forward * tan(vfov / 2 -+ mount pitch - margin)``, and at
+  least ``blind_climb_m_s`` (so a UAV just below its goal still gets there).
+
+Otherwise it only lowers the forward speed and sets the yaw rate; climb is the policy's. "No data" pixels
 read as the camera's range (the policy's convention), i.e. free. It assumes the obstacle stands
 still (two vehicles closing head-on need twice the room). Measured in docs/results.md ("The speed
 governor"): it lifts random and obstacle scenes and costs dense converging traffic (a circle of 14
@@ -43,7 +50,10 @@ from companion.spec import CameraSpec
 
 
 #: The settings that may be infinite ("never"; null in JSON, policy.json's ``governor``).
-MAY_BE_INFINITE = ("release_margin_m",)
+MAY_BE_INFINITE = ("release_margin_m", "view_climb_margin_deg")
+#: Settings added after policy files already recorded a governor: a file that does not name them was
+#: trained without them, i.e. with their defaults (which change nothing).
+ADDED_SETTINGS = ("view_climb_margin_deg", "blind_climb_m_s")
 
 
 @dataclass(frozen=True)
@@ -60,6 +70,8 @@ class GovernorSpec:
     turn_when_policy_below_rad_s: float = 0.3  # ... and the policy's own |yaw rate| is below this
     free_space_clip_m: float = 5.0  # free space per column counted up to this depth when choosing a side
     release_margin_m: float = 1.0  # sticky turn: held until the corridor is clear to stop + this (inf: not sticky)
+    view_climb_margin_deg: float = math.inf  # climb in view: path kept this far inside the vertical view (inf: off)
+    blind_climb_m_s: float = 0.1  # climb in view: climb or descent always allowed, however slow the forward speed
 
     def __post_init__(self) -> None:
         for name, value in asdict(self).items():
@@ -79,7 +91,9 @@ class GovernorSpec:
         """What this setting does, in words (the help texts and the companion's log share them), e.g.
         ``stop 0.6 m short in a +-0.35 m corridor, never turn``."""
         turn = "turn to the freer side when stopped" if self.turn_when_capped_below > 0 else "never turn"
-        return f"stop {self.stop_distance_m:g} m short in a +-{self.corridor_half_width_m:g} m corridor, {turn}"
+        climb = (f", climb only within the camera's vertical view less {self.view_climb_margin_deg:g} deg"
+                 if math.isfinite(self.view_climb_margin_deg) else "")
+        return f"stop {self.stop_distance_m:g} m short in a +-{self.corridor_half_width_m:g} m corridor, {turn}{climb}"
 
 
 #: Named settings (``companion --governor [NAME]``, ``swarm_test --governor [NAME]``), measured in docs/results.md
@@ -91,6 +105,7 @@ class GovernorSpec:
 GOVERNOR_PRESETS: dict[str, GovernorSpec] = {
     "default": GovernorSpec(),
     "swarm": GovernorSpec(stop_distance_m=0.6, turn_when_capped_below=0.0),
+    "swarm-view": GovernorSpec(stop_distance_m=0.6, turn_when_capped_below=0.0, view_climb_margin_deg=5.0),
 }
 DEFAULT_GOVERNOR = "default"
 
@@ -125,6 +140,10 @@ class SpeedGovernor:
         self.spec = spec
         tan_u, tan_v = camera.pixel_tangents()  # x right = z * tan_u, y down = z * tan_v
         self.tan_u, self.tan_v = tan_u.astype(np.float32), tan_v.astype(np.float32)
+        # climb in view: the steepest climb and descent (forward m/s -> m/s) that keep the path in the view
+        half_v, pitch, margin = camera.vertical_fov_deg / 2.0, camera.mount_pitch_deg, spec.view_climb_margin_deg
+        self.climb_per_forward = math.tan(math.radians(min(max(half_v + pitch - margin, 0.0), 89.0)))
+        self.descent_per_forward = math.tan(math.radians(min(max(half_v - pitch - margin, 0.0), 89.0)))
 
     def forward_limit(self, depth_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For frames [k, H, W] (planar metres): the nearest depth in the corridor (m: the camera's range when
@@ -174,6 +193,10 @@ class SpeedGovernor:
         steer = turning != 0
         out[steer, 2] = s.turn_rate_rad_s * turning[steer]
         out[:, 0] = np.minimum(forward, cap)
+        if math.isfinite(s.view_climb_margin_deg):  # down is NED: negative climbs
+            ahead = np.maximum(out[:, 0], 0.0)
+            out[:, 1] = np.clip(out[:, 1], -np.maximum(ahead * self.climb_per_forward, s.blind_climb_m_s),
+                                np.maximum(ahead * self.descent_per_forward, s.blind_climb_m_s))
         if not s.sticky:
             turning[:] = 0.0  # each step decides afresh
         return out, capped, nearest, turning

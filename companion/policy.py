@@ -53,7 +53,7 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.governor import MAY_BE_INFINITE, GovernorSpec
+from companion.governor import ADDED_SETTINGS, MAY_BE_INFINITE, GovernorSpec
 from companion.spec import (
     CONTROL_PERIOD_MAX_S,
     CONTROL_PERIOD_MIN_S,
@@ -349,6 +349,8 @@ def _check_governor(governor: object, path: str) -> GovernorSpec | None:
     _require(not unknown, path, f"governor has unknown settings {unknown} (this companion knows {names})")
     values = {}
     for name in names:
+        if name in ADDED_SETTINGS and name not in governor:
+            continue  # an older file, trained without it: the default
         value = governor.get(name)
         if name in MAY_BE_INFINITE and value is None:  # JSON has no inf: null is "never"
             values[name] = math.inf

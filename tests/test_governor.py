@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -85,6 +86,31 @@ def test_a_stopped_uav_turns_towards_the_freer_side_unless_the_policy_turns():
     # A cap that leaves more than half the command does not turn.
     out, capped, _, _ = gov.apply(_frames(2.0), np.array([[1.5, 0.0, 0.0]], dtype=np.float32))
     assert capped[0] and out[0, 2] == 0.0
+
+
+def test_climb_in_view_keeps_the_flight_path_inside_the_vertical_view():
+    """``view_climb_margin_deg``: |climb| <= forward * tan(vfov/2 -+ pitch - margin), at least ``blind_climb_m_s``."""
+    from companion.governor import GOVERNOR_PRESETS
+
+    assert math.isinf(GovernorSpec().view_climb_margin_deg)  # off unless asked
+    spec = GOVERNOR_PRESETS["swarm-view"]
+    assert spec.view_climb_margin_deg == 5.0 and spec.describe().endswith("vertical view less 5 deg")
+    gov = SpeedGovernor(CAMERA, spec)
+    steepest = math.tan(math.radians(CAMERA.vertical_fov_deg / 2 - 5.0))  # the D435: 29 - 5 = 24 deg
+    commands = np.array([[2.0, -0.5, 0.0], [0.5, -0.5, 0.0], [0.5, 0.5, 0.0], [0.0, -0.5, 0.0], [0.5, 0.1, 0.0]],
+                        dtype=np.float32)
+    out, _, _, _ = gov.apply(_frames(k=5), commands)
+    assert out[:, 1].tolist() == pytest.approx([-0.5, -0.5 * steepest, 0.5 * steepest, -spec.blind_climb_m_s, 0.1])
+    assert out[:, 0].tolist() == pytest.approx(commands[:, 0].tolist())  # forward and yaw are the policy's
+    # the flight path's angle never leaves the view less the margin (the blind floor aside)
+    angle = np.degrees(np.arctan2(np.abs(out[:3, 1]), out[:3, 0]))
+    assert np.all(angle <= CAMERA.vertical_fov_deg / 2 - 5.0 + 1e-4)
+    # a camera pitched up 10 deg may climb more steeply than it descends
+    pitched = SpeedGovernor(dataclasses.replace(CAMERA, mount_pitch_deg=10.0), spec)
+    assert pitched.climb_per_forward == pytest.approx(math.tan(math.radians(29 + 10 - 5.0)), rel=1e-3)
+    assert pitched.descent_per_forward == pytest.approx(math.tan(math.radians(29 - 10 - 5.0)), rel=1e-3)
+    # a policy file that predates the setting reads as trained without it; a new one records it (null: off)
+    assert GovernorSpec().to_dict()["view_climb_margin_deg"] is None
 
 
 @pytest.mark.parametrize("field, value", [("stop_distance_m", -1.0), ("brake_acc_m_s2", 0.0),
@@ -234,6 +260,13 @@ def test_a_policy_trained_with_the_governor_carries_it_and_flies_with_it(tmp_pat
     assert "governor delay_s must be a number" in refused({k: v for k, v in good.items() if k != "delay_s"})
     assert "must be a finite number >= 0" in refused(good | {"brake_acc_m_s2": -1.0})
     assert "governor must be a JSON object" in refused([1, 2])
+    # a file written before the climb-in-view settings existed names only the first ten: it flies without them
+    older = {k: v for k, v in good.items() if k not in ("view_climb_margin_deg", "blind_climb_m_s")}
+    camera = CAMERA_PRESETS["realsense_d435"]
+    save_policy(GoalSeeker([0.0, -0.5, -0.5], [2.0, 0.5, 0.5], 0.0, 0.0),
+                build_metadata(camera, load_policy(governed.path).action, 0.1, {}) | {"governor": older},
+                tmp_path / "older.pt")
+    assert load_policy(tmp_path / "older.pt").governor == GovernorSpec()
 
 
 def test_training_with_the_governor_flies_governed_commands_and_exports_the_governor(tmp_path):

@@ -671,6 +671,8 @@ class Trainer:
             provenance["avoid_weight"] = cfg.avoid_weight
         if cfg.obstacle_density:  # the training mix's obstacles episodes at their own density
             provenance["obstacle_density"] = cfg.obstacle_density
+        if cfg.density_range:  # random training episodes at a density drawn per episode, not --density alone
+            provenance["density_range"] = cfg.density_range
         if self.agent_cfg.privileged_critic:  # asymmetric actor-critic: not the paper's critic
             provenance["privileged_critic"] = {"neighbours": PRIVILEGED_NEIGHBOURS, "obstacle_point": True,
                                                "altitude": True, "module": "sitl.learn.privileged"}
