@@ -78,6 +78,10 @@ def test_density_range_draws_each_random_training_episode_at_its_own_crowding():
             parse_density_range(bad)
     with pytest.raises(ValueError, match="density_range"):
         TrainConfig(density_range="small,crowded")  # a bad flag fails before the run starts
+    with pytest.raises(ValueError, match="density_range: at 0.0001 UAV/m.3 the random box .* does not fit"):
+        TrainConfig(geometry="flown", density_range="0.0001,small")  # a box taller than 1.5-15 m
+    with pytest.raises(ValueError, match="density_range: at 10 UAV/m.3 cannot place"):
+        TrainConfig(density_range="small,10")  # UAVs 1 m apart cannot be this crowded
     # the box of each random episode: between the sparse and the dense box, both ends reached
     cfg = scenario_for("flown", "mixed", circle_fraction=0.0, obstacle_fraction=0.0, density_range=(0.04, 0.1))
     rng = np.random.default_rng(0)

@@ -11,6 +11,7 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 
 from companion.governor import GOVERNOR_PRESETS, describe_presets
@@ -229,8 +230,17 @@ class TrainConfig:
             raise ValueError(f"unknown geometry {self.geometry!r}; choose one of {', '.join(GEOMETRIES)}")
         # The scenario checks low_floor_fraction (its range, and a floor drawn per episode): here, so a
         # bad flag fails before the run starts.
-        scenario_for(self.geometry, "random", low_floor_fraction=self.low_floor_fraction,
-                     density_range=parse_density_range(self.density_range))
+        scenario = scenario_for(self.geometry, "random", low_floor_fraction=self.low_floor_fraction,
+                                density_range=parse_density_range(self.density_range))
+        if scenario.density_range is not None:  # both ends must make a box the episodes fit in
+            from sitl.sim.scenarios import sample_random
+
+            for density in scenario.density_range:
+                try:
+                    sample_random(self.num_uavs, dataclasses.replace(scenario, density=density, density_range=None),
+                                  np.random.default_rng(0))
+                except ValueError as err:
+                    raise ValueError(f"density_range: at {density:g} UAV/m^3 {err}") from None
         if not math.isfinite(density_from_name(self.density)):
             raise ValueError(f"density must be a finite number of UAV/m^3, got {self.density!r}")
         if self.obstacle_density:
