@@ -34,9 +34,9 @@ Otherwise it only lowers the forward speed and sets the yaw rate; climb is the p
 read as the camera's range (the policy's convention), i.e. free. It assumes the obstacle stands
 still (two vehicles closing head-on need twice the room). Measured in docs/results.md ("The speed
 governor"): it lifts random and obstacle scenes and costs dense converging traffic (a circle of 14
-UAVs), so it is opt-in (``companion --governor``). :data:`GOVERNOR_PRESETS` names two settings: the
-``default`` (stop and turn) and ``swarm`` (0.6 m stop, no turn), which keeps dense circles for policies that
-turn by themselves.
+UAVs), so it is opt-in (``companion --governor``). :data:`GOVERNOR_PRESETS` names three settings: the
+``default`` (stop and turn), ``swarm`` (0.6 m stop, no turn), which keeps dense circles for policies that
+turn by themselves, and ``swarm-view`` (``swarm`` plus climb in view).
 """
 
 from __future__ import annotations
@@ -101,7 +101,8 @@ class GovernorSpec:
 #: turns away: what a policy that never turns by itself needs in front of a pole. ``swarm`` stops 0.6 m short and never
 #: turns: the circle-teacher policies turn by themselves, and the default's turn and longer stop break their dense
 #: converging traffic (circles of 12-14 UAVs), where a UAV stopped or turned at the centre is met by neighbours it
-#: cannot see.
+#: cannot see. ``swarm-view`` is ``swarm`` that also climbs only within the camera's view (docs/results.md "Climbing
+#: only where the camera looks": it removes blind vertical flight but does not raise success).
 GOVERNOR_PRESETS: dict[str, GovernorSpec] = {
     "default": GovernorSpec(),
     "swarm": GovernorSpec(stop_distance_m=0.6, turn_when_capped_below=0.0),
