@@ -13,10 +13,13 @@ Nothing here depends on the simulator.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from companion.frames import ned_to_frd
-from companion.spec import MAX_INVALID_DEPTH_FRACTION, STATE_DIM, CameraSpec
+from companion.spec import (MAX_INVALID_DEPTH_FRACTION, MEMORY_AZIMUTH_SECTORS, MEMORY_ELEVATION_EDGES_DEG, STATE_DIM,
+                            CameraSpec, MemorySpec)
 
 
 class DepthFrameError(ValueError):
@@ -289,3 +292,94 @@ class DepthFrameStack:
     def latest(self) -> np.ndarray:
         """The newest frame of every stack, [num_stacks, H, W] (a view)."""
         return self.history[:, -1]
+
+
+class RememberedDepth:
+    """The remembered-depth input (:class:`companion.spec.MemorySpec`) of ``num_stacks`` vehicles.
+
+    :meth:`push` takes each clean depth frame (what :class:`DepthFrameStack` takes) with the pose it
+    was seen from and keeps its points in local NED; :meth:`sector_ranges` gives, from a pose, the
+    range of the nearest remembered point in each direction sector. The camera's pixels are unprojected
+    with the spec's mount pitch (the companion knows no other), at the centres of the pooled grid.
+    """
+
+    def __init__(self, num_stacks: int, camera: CameraSpec, memory: MemorySpec) -> None:
+        self.camera, self.memory = camera, memory
+        height, width = max(1, camera.height // memory.pool), max(1, camera.width // memory.pool)
+        # The pooled grid spans the camera's field of view (vfov given, so it stays the camera's).
+        self._pooled = dataclasses.replace(camera, width=width, height=height, vfov_deg=camera.vertical_fov_deg)
+        tan_u, tan_v = self._pooled.pixel_tangents()
+        cp, sp = np.cos(camera.mount_pitch_rad), np.sin(camera.mount_pitch_rad)
+        # A point at planar depth z in pixel p lies z * ray[p] from the camera, in the heading FRD frame
+        # (a camera pitched up by p: its ray (1, u, v) is (cp + v sp, u, v cp - sp)).
+        u, v = np.meshgrid(tan_u, tan_v)
+        self._ray_frd = np.stack([cp + v * sp, u, v * cp - sp], axis=-1).reshape(-1, 3).astype(np.float32)
+        self.points_ned = np.full((num_stacks, memory.slots, height * width, 3), np.nan, dtype=np.float32)
+        self._head = np.zeros(num_stacks, dtype=np.int64)  # the slot the newest frame is written to
+        self._pushes = np.zeros(num_stacks, dtype=np.int64)
+        inner = np.asarray(MEMORY_ELEVATION_EDGES_DEG[1:-1])
+        self._sin_band_edges = np.sin(np.radians(inner))
+        counts = np.asarray(MEMORY_AZIMUTH_SECTORS)
+        self._band_count = counts
+        self._band_offset = np.concatenate([[0], np.cumsum(counts)[:-1]])
+
+    def reset(self, frame: np.ndarray, pos_ned: np.ndarray, yaw_rad: np.ndarray,
+              index: np.ndarray | slice = slice(None)) -> None:
+        """Forget everything at ``index`` and remember ``frame`` (a new flight or episode)."""
+        self.points_ned[index] = np.nan
+        self._head[index] = 0
+        self._pushes[index] = 0
+        self.push(frame, pos_ned, yaw_rad, index)
+
+    def push(self, frame: np.ndarray, pos_ned: np.ndarray, yaw_rad: np.ndarray,
+             index: np.ndarray | slice = slice(None)) -> None:
+        """Remember the clean frames [k, H, W] seen from ``pos_ned`` [k, 3] with heading ``yaw_rad`` [k].
+
+        The newest frame always replaces the one in the head slot; every ``every_steps``-th push stays.
+        """
+        rows = np.arange(len(self._head))[index]
+        cam = self.camera
+        pooled = min_pool_depth(np.asarray(frame, dtype=np.float32).reshape(len(rows), cam.height, cam.width),
+                                self._pooled.height, self._pooled.width, cam.max_range_m)
+        z = pooled.reshape(len(rows), -1, 1)
+        frd = z * self._ray_frd  # [k, P, 3]
+        cy, sy = np.cos(yaw_rad)[:, None], np.sin(yaw_rad)[:, None]
+        points = np.empty_like(frd)
+        points[..., 0] = frd[..., 0] * cy - frd[..., 1] * sy
+        points[..., 1] = frd[..., 0] * sy + frd[..., 1] * cy
+        points[..., 2] = frd[..., 2]
+        points += np.asarray(pos_ned, dtype=np.float32)[:, None, :]
+        points[z[..., 0] >= cam.max_range_m] = np.nan  # max_range_m: no return
+        self.points_ned[rows, self._head[rows]] = points
+        self._pushes[rows] += 1
+        keep = self._pushes[rows] % self.memory.every_steps == 0
+        self._head[rows] = np.where(keep, (self._head[rows] + 1) % self.memory.slots, self._head[rows])
+
+    def sector_ranges(self, pos_ned: np.ndarray, yaw_rad: np.ndarray,
+                      index: np.ndarray | slice = slice(None)) -> np.ndarray:
+        """float32 [k, sectors]: the nearest remembered point's range in each sector, from ``pos_ned``
+        [k, 3] with heading ``yaw_rad`` [k], clipped to ``range_m``; sectors laid out as
+        :meth:`companion.spec.MemorySpec.state_names`."""
+        points = self.points_ned[index]
+        k = points.shape[0]
+        rel = points.reshape(k, -1, 3) - np.asarray(pos_ned, dtype=np.float32)[:, None, :]
+        limit = np.float32(self.memory.range_m)
+        with np.errstate(invalid="ignore"):
+            distance = np.sqrt(np.einsum("kqi,kqi->kq", rel, rel))
+            near = distance < limit  # NaN (nothing remembered) is never near
+        row, col = np.nonzero(near)
+        out = np.full((k, self.memory.num_sectors), limit, dtype=np.float32)
+        if len(row) == 0:
+            return out
+        d_ned, dist = rel[row, col], distance[row, col]
+        cy, sy = np.cos(yaw_rad)[row], np.sin(yaw_rad)[row]
+        fwd = cy * d_ned[:, 0] + sy * d_ned[:, 1]
+        right = -sy * d_ned[:, 0] + cy * d_ned[:, 1]
+        sin_up = -d_ned[:, 2] / np.maximum(dist, 1e-6)
+        band = np.searchsorted(self._sin_band_edges, sin_up)
+        count = self._band_count[band]
+        azimuth = np.arctan2(right, fwd)  # rad, positive right
+        sector = np.floor(azimuth / (2 * np.pi) * count + 0.5).astype(np.int64) % count
+        flat = out.reshape(-1)
+        np.minimum.at(flat, row * self.memory.num_sectors + self._band_offset[band] + sector, dist)
+        return out

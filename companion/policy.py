@@ -66,10 +66,13 @@ from companion.spec import (
     MAX_FRAME_AGE,
     MAX_FRAME_STRIDE,
     MAX_MOUNT_PITCH_DEG,
+    MEMORY_MAX_STEPS,
     STATE_NAMES,
     ActionSpec,
     CameraSpec,
+    MemorySpec,
     TaskSpec,
+    state_names_for,
 )
 
 FORMAT_VERSION = 2  # what export writes
@@ -89,9 +92,10 @@ class PolicyFileError(ValueError):
 
 
 def build_metadata(camera: CameraSpec, action: ActionSpec, control_period_s: float, provenance: dict,
-                   task: TaskSpec = DEFAULT_TASK_SPEC, governor: GovernorSpec | None = None) -> dict:
+                   task: TaskSpec = DEFAULT_TASK_SPEC, governor: GovernorSpec | None = None,
+                   memory: MemorySpec | None = None) -> dict:
     """The ``policy.json`` content for a policy trained with ``camera``, ``action`` and ``task`` (and the
-    speed ``governor`` after it, if any)."""
+    speed ``governor`` after it, and the remembered-depth input ``memory``, if any)."""
     return {
         "format_version": FORMAT_VERSION,
         "depth": {
@@ -107,7 +111,9 @@ def build_metadata(camera: CameraSpec, action: ActionSpec, control_period_s: flo
         },
         "control_period_s": control_period_s,
         "body_frame": BODY_FRAME,
-        "state_names": list(STATE_NAMES),
+        "state_names": list(state_names_for(memory)),
+        # Only for a policy with remembered depth (older files and readers never see it).
+        **({"memory": memory.to_dict()} if memory is not None else {}),
         "action": {"names": list(action.names), "low": list(action.low), "high": list(action.high)},
         "task": task.to_dict(),
         **({"governor": governor.to_dict()} if governor is not None else {}),
@@ -128,9 +134,10 @@ def save_policy(module, metadata: dict, path: str | Path) -> None:
 
     from companion.checked_policy import ShapeCheckedPolicy, unwrap_checked
 
-    camera, _, _, _ = _check_metadata(metadata, str(path))
+    camera, _, _, _, memory = _check_metadata(metadata, str(path))
     # a loaded file saved again is unwrapped first: its check follows the metadata written now
-    module = ShapeCheckedPolicy(unwrap_checked(module), camera.frames, camera.height, camera.width, len(STATE_NAMES))
+    module = ShapeCheckedPolicy(unwrap_checked(module), camera.frames, camera.height, camera.width,
+                                len(state_names_for(memory)))
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     with _QuietJitDeprecation():
         scripted = module if isinstance(module, torch.jit.ScriptModule) else torch.jit.script(module)
@@ -166,6 +173,13 @@ class LoadedPolicy:
     notes: tuple[str, ...] = ()
     #: The speed governor the policy was trained with (policy.json's optional ``governor``): it flies with it.
     governor: GovernorSpec | None = None
+    #: The remembered-depth input appended to its state (policy.json's optional ``memory``), if any.
+    memory: MemorySpec | None = None
+
+    @property
+    def state_dim(self) -> int:
+        """Entries of the state this policy takes (6, plus the remembered sector ranges)."""
+        return len(state_names_for(self.memory))
 
     def act(self, depth_m: np.ndarray, state: np.ndarray) -> np.ndarray:
         """Deterministic actions [B, 3] (float32) for a batch of observations."""
@@ -229,10 +243,10 @@ def _numbers(value: object, path: str, name: str, count: int) -> tuple[float, ..
     return tuple(_finite_number(v, path, f"{name}[{i}]") for i, v in enumerate(value))
 
 
-def _check_metadata(meta: object, path: str) -> tuple[CameraSpec, ActionSpec, float, TaskSpec]:
+def _check_metadata(meta: object, path: str) -> tuple[CameraSpec, ActionSpec, float, TaskSpec, MemorySpec | None]:
     """Check ``policy.json`` field by field (types first) against this companion's spec.
 
-    Returns the camera, action bounds, control period and task it declares; raises
+    Returns the camera, action bounds, control period, task and remembered-depth input it declares; raises
     :class:`PolicyFileError` naming the first bad field. Nothing from the file is used
     before its type and range are known, so a hostile file gets a reason, never a traceback.
     """
@@ -294,9 +308,11 @@ def _check_metadata(meta: object, path: str) -> tuple[CameraSpec, ActionSpec, fl
     _require(CONTROL_PERIOD_MIN_S <= period <= CONTROL_PERIOD_MAX_S, path,
              f"control_period_s must be in {CONTROL_PERIOD_MIN_S:g}..{CONTROL_PERIOD_MAX_S:g} s, file says {period!r}")
 
+    memory = _check_memory(meta.get("memory"), path)
     names = meta["state_names"]
-    _require(isinstance(names, list) and names == list(STATE_NAMES), path,
-             f"state layout {names!r} differs from this companion's {list(STATE_NAMES)}")
+    expected = list(state_names_for(memory))
+    _require(isinstance(names, list) and names == expected, path,
+             f"state layout {names!r:.200} differs from this companion's {expected!r:.200}")
     _require(isinstance(meta["body_frame"], str), path, "body_frame must be a string")
     _require(isinstance(meta["provenance"], dict), path, "provenance must be a JSON object")
 
@@ -315,7 +331,7 @@ def _check_metadata(meta: object, path: str) -> tuple[CameraSpec, ActionSpec, fl
                  f"action {name} bounds [{lo:g}, {hi:g}] exceed the onboard limits [{lo_max:g}, {hi_max:g}]")
     if version >= 2:
         _require("task" in meta, path, "policy.json lacks the field 'task' (required by format version 2)")
-    return camera, ActionSpec(spec.names, low, high), float(period), _check_task(meta.get("task"), path)
+    return camera, ActionSpec(spec.names, low, high), float(period), _check_task(meta.get("task"), path), memory
 
 
 def version1_notes(meta: dict, camera: CameraSpec) -> tuple[str, ...]:
@@ -337,6 +353,23 @@ def _check_task(task: object, path: str) -> TaskSpec:
              f"task radii must be in (0, 10] m, file says collision {radius:g}, arrival {arrival:g}")
     steps = _integer(task.get("max_episode_steps"), path, "task max_episode_steps", 1, 1_000_000)
     return TaskSpec(collision_radius_m=radius, arrival_radius_m=arrival, max_episode_steps=steps)
+
+
+def _check_memory(memory: object, path: str) -> MemorySpec | None:
+    """The remembered-depth input a policy takes (absent or null: none), every setting named."""
+    if memory is None:
+        return None
+    _require(isinstance(memory, dict), path, f"memory must be a JSON object, file says {memory!r:.40}")
+    names = [f.name for f in dataclasses.fields(MemorySpec)]
+    _require(sorted(memory) == sorted(names), path,
+             f"memory must have exactly the settings {names}, file says {sorted(memory)!r:.80}")
+    try:
+        return MemorySpec(steps=_integer(memory["steps"], path, "memory steps", 1, MEMORY_MAX_STEPS),
+                          every_steps=_integer(memory["every_steps"], path, "memory every_steps", 1, MEMORY_MAX_STEPS),
+                          range_m=_finite_number(memory["range_m"], path, "memory range_m"),
+                          pool=_integer(memory["pool"], path, "memory pool", 1, 16))
+    except ValueError as err:
+        raise PolicyFileError(f"{path}: {err}") from None
 
 
 def _check_governor(governor: object, path: str) -> GovernorSpec | None:
@@ -397,19 +430,22 @@ def load_policy(path: str | Path, *, check_forward: bool = True,
         meta = json.loads(extra[METADATA_FILE])
     except json.JSONDecodeError as err:
         raise PolicyFileError(f"{path}: {METADATA_FILE} is not valid JSON ({err})") from err
-    camera, action, period_s, task = _check_metadata(meta, path)
+    camera, action, period_s, task, memory = _check_metadata(meta, path)
+    state_dim = len(state_names_for(memory))
     if Path(path).suffix.lower() == ".onnx":
-        problem = shape_problem(module, camera.frames, camera.height, camera.width, len(STATE_NAMES))
+        problem = shape_problem(module, camera.frames, camera.height, camera.width, state_dim)
         _require(problem is None, path, str(problem))
     module.eval()
     version = int(meta["format_version"])
     notes = version1_notes(meta, camera) if version == 1 else ()
     governor = _check_governor(meta.get("governor"), path)
-    policy = LoadedPolicy(module, meta, camera, action, period_s, path, task, version, notes, governor)
+    policy = LoadedPolicy(module, meta, camera, action, period_s, path, task, version, notes, governor, memory)
     if check_forward:
         blank_depth = np.full((1, camera.frames, camera.height, camera.width), camera.max_range_m, np.float32)
-        blank_state = np.zeros((1, len(STATE_NAMES)), np.float32)
+        blank_state = np.zeros((1, state_dim), np.float32)
         blank_state[0, 0] = 10.0
+        if memory is not None:
+            blank_state[0, len(STATE_NAMES):] = memory.range_m  # nothing remembered
         try:
             out = policy.act(blank_depth, blank_state)
         except Exception as err:  # TorchScript errors span many lines: keep the one that says why

@@ -275,6 +275,71 @@ SENSOR_PRESETS: dict[str, CameraSpec] = {"paper": CameraSpec(), "realsense_d435"
                                          "wide_stereo": WIDE_STEREO_SENSOR}
 
 
+#: Direction sectors of the remembered-depth input (:class:`MemorySpec`), in the heading FRD frame:
+#: elevation band edges in degrees (up positive, bottom to top) and the azimuth sectors of each band
+#: (1: the whole ring, a cap). Azimuth sectors are centred on forward, 0, 45, ... deg, positive right.
+MEMORY_ELEVATION_EDGES_DEG: tuple[float, ...] = (-90.0, -45.0, -15.0, 15.0, 45.0, 90.0)
+MEMORY_AZIMUTH_SECTORS: tuple[int, ...] = (1, 8, 8, 8, 1)
+MEMORY_BAND_NAMES: tuple[str, ...] = ("down", "low", "level", "high", "up")
+#: Most control steps a policy file may ask to remember (10 s at 0.1 s).
+MEMORY_MAX_STEPS = 100
+
+
+@dataclass(frozen=True)
+class MemorySpec:
+    """Remembered depth: what the camera showed in the last ``steps`` control steps, moved with odometry.
+
+    The companion keeps the points of recent depth frames in local NED (each frame min-pooled by
+    ``pool`` first, one frame kept every ``every_steps`` steps, the newest frame always), and gives the
+    policy, in each direction sector of :data:`MEMORY_AZIMUTH_SECTORS`, the range of the nearest
+    remembered point from where the vehicle is now, clipped to ``range_m`` (nothing remembered reads
+    ``range_m``). The ranges are appended to the state after :data:`STATE_NAMES`, named by
+    :meth:`state_names`. It lets a policy keep avoiding a UAV that has left its camera's view (above,
+    below or beside it). ``companion.observation.RememberedDepth`` is the one implementation.
+    """
+
+    steps: int = 10  # control steps remembered (1 s at 0.1 s)
+    every_steps: int = 2  # one frame kept every this many steps (the newest always)
+    range_m: float = 5.0  # remembered ranges are clipped here
+    pool: int = 2  # frames are min-pooled by this factor before they are remembered
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.steps <= MEMORY_MAX_STEPS:
+            raise ValueError(f"memory steps must be in 1..{MEMORY_MAX_STEPS}, got {self.steps}")
+        if not 1 <= self.every_steps <= self.steps:
+            raise ValueError(f"memory every_steps must be in 1..steps ({self.steps}), got {self.every_steps}")
+        if not 0.0 < self.range_m <= 100.0:
+            raise ValueError(f"memory range_m must be in (0, 100] m, got {self.range_m}")
+        if not 1 <= self.pool <= 16:
+            raise ValueError(f"memory pool must be in 1..16, got {self.pool}")
+
+    @property
+    def slots(self) -> int:
+        """Frames remembered at once: ``ceil(steps / every_steps)``."""
+        return -(-self.steps // self.every_steps)
+
+    @property
+    def num_sectors(self) -> int:
+        return sum(MEMORY_AZIMUTH_SECTORS)
+
+    @staticmethod
+    def state_names() -> tuple[str, ...]:
+        """The names of the sector ranges appended to the state, e.g. ``memory_level_az045_m`` (45 deg right)."""
+        names = []
+        for band, count in zip(MEMORY_BAND_NAMES, MEMORY_AZIMUTH_SECTORS):
+            names += [f"memory_{band}_m"] if count == 1 else [f"memory_{band}_az{round(360 * k / count):03d}_m"
+                                                               for k in range(count)]
+        return tuple(names)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def state_names_for(memory: MemorySpec | None) -> tuple[str, ...]:
+    """The state layout of a policy with (or without) remembered depth."""
+    return STATE_NAMES + (memory.state_names() if memory is not None else ())
+
+
 def preset_for_camera(camera: CameraSpec) -> str:
     """The name of the camera preset whose field of view and range ``camera`` has (resolution, stack and
     mount pitch aside): which sensor ``sitl.vehicle --camera`` must carry for a policy. Raises

@@ -80,6 +80,8 @@ def sim_config_for(method: Method, settings: EvalSettings, num_worlds: int) -> S
     min_range_m = extra["camera"].min_range_m if "camera" in extra else 0.0
     if method.control_period_s is not None:
         extra["control_period_s"] = method.control_period_s
+    if method.memory is not None:
+        extra["memory"] = method.memory
     return SimConfig(num_uavs=settings.num_uavs, num_worlds=num_worlds, scenario=settings.scenario,
                      dynamics=settings.dynamics, max_episode_steps=settings.max_episode_steps,
                      # the noise model's "too near" cut is the simulated camera's (0 for the paper camera)

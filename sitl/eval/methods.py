@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from companion.governor import DEFAULT_GOVERNOR, GovernorSpec, governor_name
-from companion.spec import CameraSpec
+from companion.spec import CameraSpec, MemorySpec
 from sitl.eval.orca import ORCA_REFERENCES
 from sitl.sim.env import Observation, SwarmEnv
 from sitl.sim.episodes import Actor, ActorFactory, governed_actor
@@ -46,6 +46,7 @@ class Method:
     control_period_s: float | None = None
     provenance: dict = field(default_factory=dict)
     governor: GovernorSpec | None = None  # companion.governor on the commands (label gains "+governor")
+    memory: MemorySpec | None = None  # the policy's remembered-depth input: the simulator builds it
     _policy: object = field(default=None, repr=False)
 
     def info(self) -> dict:
@@ -183,6 +184,7 @@ def resolve_method(spec: str | Path) -> Method:
     provenance = policy.metadata.get("provenance", {}) or {}
     label = str(provenance.get("method") or path.stem)
     method = Method(label=label, kind="policy", path=str(path), camera=policy.camera,
-                    control_period_s=policy.control_period_s, provenance=provenance, _policy=policy)
+                    control_period_s=policy.control_period_s, provenance=provenance, memory=policy.memory,
+                    _policy=policy)
     # A policy trained with the speed governor flies with it, as the companion flies it.
     return method.with_governor(policy.governor) if policy.governor is not None else method

@@ -34,8 +34,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from companion.spec import ActionSpec, CameraSpec
-from sitl.learn.networks import STATE_FEATURES, Actor, Critic, Decoder, DepthNormalizer, Encoder, StateFeatures, weight_init
+from companion.spec import ActionSpec, CameraSpec, MemorySpec
+from sitl.learn.networks import Actor, Critic, Decoder, DepthNormalizer, Encoder, StateFeatures, weight_init
 from sitl.learn.privileged import PRIVILEGED_DIM
 
 METHODS = ("sac_ae", "cnn", "drq", "vae", "distill")
@@ -130,15 +130,19 @@ class SacAeAgent(nn.Module):
     """The shared policy of all UAVs, its critics and (for sac_ae) its decoder."""
 
     def __init__(self, config: AgentConfig, camera: CameraSpec, action_spec: ActionSpec,
-                 device: torch.device | str = "cpu", vae_encoder: nn.Module | None = None) -> None:
+                 device: torch.device | str = "cpu", vae_encoder: nn.Module | None = None,
+                 memory: MemorySpec | None = None) -> None:
         super().__init__()
         self.config = config
         self.camera = camera
+        self.memory = memory  # remembered depth in the state (None: the paper's state)
         self.action_spec = action_spec
         self.device = torch.device(device)
         frames, h, w = camera.frames, camera.height, camera.width
         self.normalize_depth = DepthNormalizer(camera.max_range_m)
-        self.state_features = StateFeatures()
+        self.state_features = (StateFeatures(memory.num_sectors, memory.range_m) if memory is not None
+                               else StateFeatures())
+        state_features = self.state_features.num_features
         low = torch.tensor(action_spec.low, dtype=torch.float32)
         high = torch.tensor(action_spec.high, dtype=torch.float32)
 
@@ -153,9 +157,9 @@ class SacAeAgent(nn.Module):
             actor_encoder = Encoder(frames, h, w, config.latent_dim, config.num_filters)
         #: width of the critic's privileged input (0: the paper's critic, which sees what the actor sees)
         self.privileged_dim = PRIVILEGED_DIM if config.privileged_critic else 0
-        self.critic = Critic(critic_encoder, STATE_FEATURES + self.privileged_dim, len(action_spec.low),
+        self.critic = Critic(critic_encoder, state_features + self.privileged_dim, len(action_spec.low),
                              config.hidden_dim)
-        self.actor = Actor(actor_encoder, STATE_FEATURES, low, high, config.hidden_dim)
+        self.actor = Actor(actor_encoder, state_features, low, high, config.hidden_dim)
         for net in (self.critic, self.actor):
             for name, child in net.named_children():
                 if name != "encoder" or config.method != "vae":

@@ -15,7 +15,8 @@ import numpy as np
 import torch
 
 from companion.governor import GOVERNOR_PRESETS, describe_presets
-from companion.spec import CAMERA_PRESETS, DEFAULT_TASK_SPEC, MAX_FRAME_STRIDE, CameraSpec, check_frame_ages
+from companion.spec import (CAMERA_PRESETS, DEFAULT_TASK_SPEC, MAX_FRAME_STRIDE, MEMORY_MAX_STEPS, CameraSpec, MemorySpec,
+                            check_frame_ages)
 from sitl.cli_args import MAX_THREADS
 from sitl.learn.agent import METHODS, AgentConfig
 from sitl.sim.camera import EDGE_HOLE_MODELS, StereoNoise
@@ -130,6 +131,10 @@ class TrainConfig:
     frame_ages: str = _param("", "age in control steps of each of the 3 stacked frames, oldest first, ending in 0, "
                                  "e.g. 3,1,0 (ticks t-3, t-1, t); replaces --frame-stride; empty: --frame-stride "
                                  "(docs/training.md 'A stack with both spans')")
+    memory_steps: int = _param(0, "remembered depth (companion.spec.MemorySpec, not in the paper): the policy also "
+                                  "sees the nearest point its camera showed in the last this many control steps, "
+                                  "per direction sector around it (10: 1 s); 0: off (docs/training.md "
+                                  "'Remembered depth')")
     avoid_counts_ground: bool = _param(False, "eq. 4's d_min counts the ground, as in the paper (default: UAVs and "
                                               "obstacles only; docs/training.md)")
     collision_reward: float = _param(RewardConfig.r_collision,
@@ -322,7 +327,7 @@ class TrainConfig:
 #: (field, lowest, highest) of TrainConfig's integers.
 TRAIN_INT_RANGES = (
     ("num_uavs", 1, 1000), ("num_worlds", 1, 1000), ("image_size", 1, 256), ("max_episode_steps", 1, 100_000),
-    ("validation_steps", 0, 100_000),
+    ("validation_steps", 0, 100_000), ("memory_steps", 0, MEMORY_MAX_STEPS),
     ("frame_stride", 1, MAX_FRAME_STRIDE), ("batch_size", 1, 100_000), ("replay_capacity", 1, 10_000_000),
     ("precollision_steps", 0, 1000), ("max_episodes", 0, 10**9),
     ("total_updates", 0, 10**9), ("updates_per_episode", 0, 1_000_000), ("init_steps", 0, 10**9),
@@ -537,12 +542,18 @@ def make_sim_config(cfg: TrainConfig, num_worlds: int, record_paths: bool = Fals
                                                       edge_holes=cfg.camera_noise_edges)
                      if cfg.camera_noise else None,
                      mount_pitch_jitter_deg=cfg.mount_pitch_jitter_deg if training else 0.0,
-                     max_episode_steps=cfg.max_episode_steps, record_paths=record_paths,
+                     memory=training_memory(cfg), max_episode_steps=cfg.max_episode_steps, record_paths=record_paths,
                      reward=RewardConfig(arrival_radius_m=cfg.arrival_radius_m, r_collision=cfg.collision_reward,
                                          r_collision_uav_extra=cfg.uav_collision_extra_reward,
                                          w_avoid=cfg.avoid_weight, w_blind=cfg.blind_motion_reward,
                                          w_corridor=cfg.corridor_speed_reward,
                                          avoid_counts_ground=cfg.avoid_counts_ground))
+
+
+def training_memory(cfg: TrainConfig) -> MemorySpec | None:
+    """The remembered-depth input ``cfg`` trains with (None: off), every other setting the spec's default."""
+    return MemorySpec(steps=cfg.memory_steps, every_steps=min(MemorySpec.every_steps, cfg.memory_steps)) \
+        if cfg.memory_steps else None
 
 
 def parse_density_range(text: str) -> tuple[float, float] | None:

@@ -25,7 +25,7 @@ from companion.checked_policy import unwrap_checked
 from companion.governor import GovernorSpec
 from companion.onnx_policy import INPUT_DEPTH, INPUT_STATE, METADATA_KEY, OUTPUT_ACTION
 from companion.policy import PolicyFileError, build_metadata, load_policy, save_policy
-from companion.spec import DEFAULT_TASK_SPEC, STATE_DIM, TaskSpec
+from companion.spec import DEFAULT_TASK_SPEC, MemorySpec, TaskSpec
 
 #: ONNX opset of the exported graph: onnxruntime >= 1.12 runs it (JetPack 5's builds included).
 ONNX_OPSET = 17
@@ -74,7 +74,7 @@ def export_policy(agent, path: str | Path, control_period_s: float, provenance: 
     """
     module = ExportedPolicy(agent).eval()
     metadata = build_metadata(agent.camera, agent.action_spec, control_period_s,
-                              {"git_commit": git_commit(), **provenance}, task, governor)
+                              {"git_commit": git_commit(), **provenance}, task, governor, agent.memory)
     save_policy(module, metadata, path)
     if onnx:
         try:
@@ -98,7 +98,7 @@ def export_onnx(torchscript_path: str | Path, onnx_path: str | Path) -> float:
 
     policy = load_policy(torchscript_path)
     cam = policy.camera
-    example = (torch.full((1, cam.frames, cam.height, cam.width), cam.max_range_m), torch.zeros(1, STATE_DIM))
+    example = (torch.full((1, cam.frames, cam.height, cam.width), cam.max_range_m), torch.zeros(1, policy.state_dim))
     # The network without the TorchScript input check (companion/checked_policy.py): the ONNX
     # graph declares its input shapes instead, and the exporter would otherwise have to trace the check.
     module = unwrap_checked(policy.module)
@@ -118,7 +118,7 @@ def export_onnx(torchscript_path: str | Path, onnx_path: str | Path) -> float:
     # The exporter drops an input the module never reads (a test policy that ignores depth);
     # the contract says both are there, so put it back as an unused input.
     declared = {i.name for i in model.graph.input}
-    for name, shape in ((INPUT_DEPTH, ["batch", cam.frames, cam.height, cam.width]), (INPUT_STATE, ["batch", STATE_DIM])):
+    for name, shape in ((INPUT_DEPTH, ["batch", cam.frames, cam.height, cam.width]), (INPUT_STATE, ["batch", policy.state_dim])):
         if name not in declared:
             model.graph.input.append(onnx.helper.make_tensor_value_info(name, onnx.TensorProto.FLOAT, shape))
     model.graph.input.sort(key=lambda i: (i.name != INPUT_DEPTH, i.name != INPUT_STATE))  # depth, state
@@ -129,7 +129,7 @@ def export_onnx(torchscript_path: str | Path, onnx_path: str | Path) -> float:
     Path(onnx_path).parent.mkdir(parents=True, exist_ok=True)
     onnx.save(model, str(onnx_path))
     exported = load_policy(onnx_path)
-    depth, state = check_observations(cam.frames, cam.height, cam.width, cam.max_range_m)
+    depth, state = check_observations(cam.frames, cam.height, cam.width, cam.max_range_m, memory=policy.memory)
     difference = float(np.max(np.abs(exported.act(depth, state) - policy.act(depth, state))))
     if not difference <= ONNX_TOLERANCE:
         raise PolicyFileError(f"{onnx_path}: ONNX actions differ from TorchScript's by {difference:.3g} "
@@ -138,8 +138,9 @@ def export_onnx(torchscript_path: str | Path, onnx_path: str | Path) -> float:
 
 
 def check_observations(frames: int, height: int, width: int, max_range_m: float, count: int = 64,
-                       seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """A batch of varied observations for comparing formats: depth with near, far and missing returns."""
+                       seed: int = 0, memory: MemorySpec | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """A batch of varied observations for comparing formats: depth with near, far and missing returns
+    (and, with ``memory``, remembered sector ranges from touching to nothing remembered)."""
     rng = np.random.default_rng(seed)
     depth = rng.uniform(0.2, max_range_m, (count, frames, height, width)).astype(np.float32)
     depth[rng.random(depth.shape) < 0.1] = max_range_m  # nothing in range
@@ -147,6 +148,9 @@ def check_observations(frames: int, height: int, width: int, max_range_m: float,
     state = np.column_stack([rng.uniform(-30, 30, count), rng.uniform(-30, 30, count), rng.uniform(-5, 5, count),
                              rng.uniform(0, 2, count), rng.uniform(-0.5, 0.5, count),
                              rng.uniform(-0.5, 0.5, count)]).astype(np.float32)
+    if memory is not None:
+        ranges = rng.uniform(0.0, 1.2 * memory.range_m, (count, memory.num_sectors)).astype(np.float32)
+        state = np.concatenate([state, np.minimum(ranges, memory.range_m)], axis=1)
     return depth, state
 
 

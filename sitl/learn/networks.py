@@ -54,20 +54,29 @@ class StateFeatures(nn.Module):
 
     The goal becomes a unit direction and a distance: the bearing stays as clear at 0.5 m
     from the goal as at 20 m, which a plain goal / scale loses near arrival. Distances
-    above 2 x ``GOAL_DISTANCE_SCALE_M`` saturate.
+    above 2 x ``GOAL_DISTANCE_SCALE_M`` saturate. Remembered sector ranges (``memory_range_m``
+    > 0, :class:`companion.spec.MemorySpec`) become closeness in [0, 1]: 0 nothing within the
+    range, 1 touching.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, memory_sectors: int = 0, memory_range_m: float = 1.0) -> None:
         super().__init__()
         self.register_buffer("velocity_scale", torch.tensor(VELOCITY_SCALE, dtype=torch.float32))
         self.goal_distance_scale_m = GOAL_DISTANCE_SCALE_M
+        self.memory_sectors = memory_sectors
+        self.memory_range_m = memory_range_m
+        self.num_features = STATE_FEATURES + memory_sectors
 
     def forward(self, state: torch.Tensor) -> torch.Tensor:
         goal = state[:, 0:3]
         distance = torch.linalg.vector_norm(goal, dim=1, keepdim=True)
         direction = goal / torch.clamp(distance, min=1e-6)
         scaled = torch.clamp(distance / self.goal_distance_scale_m, max=2.0)
-        return torch.cat([direction, scaled, state[:, 3:6] / self.velocity_scale], dim=1)
+        features = torch.cat([direction, scaled, state[:, 3:6] / self.velocity_scale], dim=1)
+        if self.memory_sectors == 0:
+            return features
+        closeness = 1.0 - torch.clamp(state[:, 6:] / self.memory_range_m, 0.0, 1.0)
+        return torch.cat([features, closeness], dim=1)
 
 
 class Encoder(nn.Module):

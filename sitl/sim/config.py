@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
-from companion.spec import DEFAULT_TASK_SPEC, CameraSpec
+from companion.spec import DEFAULT_TASK_SPEC, CameraSpec, MemorySpec
 from sitl.sim.camera import SceneGeometry, StereoNoise
 from sitl.sim.dynamics import DYNAMICS_NAMES, KinematicRandomization
 
@@ -220,6 +220,8 @@ class SimConfig:
     camera: CameraSpec = field(default_factory=CameraSpec)
     camera_supersample: int = 4  # sub-rays per pixel side, min-pooled (render high, pool down)
     camera_noise: StereoNoise | None = None  # None: perfect depth
+    #: Remembered depth appended to each UAV's state (companion.spec.MemorySpec); None: the paper's state only.
+    memory: MemorySpec | None = None
     #: Each UAV's camera mount pitch is drawn per episode uniformly within +-this many degrees of
     #: ``camera.mount_pitch_deg`` (a body-fixed camera pitches with the airframe; 0: exactly the mount).
     mount_pitch_jitter_deg: float = 0.0

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.governor import SpeedGovernor
-from companion.observation import DepthFrameStack, build_state, clean_depth
+from companion.observation import DepthFrameStack, RememberedDepth, build_state, clean_depth
 from companion.spec import DEFAULT_ACTION_SPEC, ActionSpec
 from sitl.sim.camera import DepthCamera, blind_speed_m_s
 from sitl.sim.collision import (DISABLED_BOX, DISABLED_CYLINDER, ground_collisions, obstacle_collisions,
@@ -49,7 +49,7 @@ class Observation:
     """The policy's input for every UAV."""
 
     depth: np.ndarray  # float32 [M, frames, H, W], metres
-    state: np.ndarray  # float32 [M, 6]
+    state: np.ndarray  # float32 [M, 6] (+ the remembered sector ranges with SimConfig.memory)
 
 
 class SwarmEnv:
@@ -74,6 +74,8 @@ class SwarmEnv:
         self.dynamics = make_dynamics(config.dynamics, self.num_agents)
         self.camera = DepthCamera(config.camera, config.camera_supersample, config.body)
         self.frames = DepthFrameStack(self.num_agents, config.camera)
+        # What each UAV's companion remembers of its camera (None: the paper's observation).
+        self.memory = RememberedDepth(self.num_agents, config.camera, config.memory) if config.memory else None
         # Per-world obstacle arrays: the fixed ones given here, then room for the scenario's own
         # (rows DISABLED_* until an episode places them).
         b = config.num_worlds
@@ -122,6 +124,8 @@ class SwarmEnv:
         """The current observation of every UAV (a fresh state array; depth is a view for consecutive frames)."""
         d = self.dynamics
         state = build_state(d.pos_ned, d.yaw_rad, d.vel_ned, d.yaw_rate_rad_s, self.goal_ned)
+        if self.memory is not None:
+            state = np.concatenate([state, self.memory.sector_ranges(d.pos_ned, d.yaw_rad)], axis=1)
         return Observation(self.frames.frames, state)
 
     def distance_to_goal_m(self) -> np.ndarray:
@@ -171,6 +175,8 @@ class SwarmEnv:
         rows = np.flatnonzero(np.repeat(worlds, n))
         depth = self._render()
         self.frames.reset(depth[rows], rows)
+        if self.memory is not None:
+            self.memory.reset(depth[rows], self.dynamics.pos_ned[rows], self.dynamics.yaw_rad[rows], rows)
         return self.observation()
 
     # ------------------------------------------------------------------ step
@@ -231,6 +237,8 @@ class SwarmEnv:
 
         depth = self._render()
         self.frames.push(depth)
+        if self.memory is not None:
+            self.memory.push(depth, dynamics.pos_ned, dynamics.yaw_rad)
         d_min = nearest_depth_m(depth) if cfg.reward.avoid_counts_ground else self.nearest_object_m
         blind = (blind_speed_m_s(dynamics.vel_ned, dynamics.yaw_rad, self.mount_pitch_rad, cfg.camera)
                  if cfg.reward.w_blind else None)
