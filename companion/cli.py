@@ -333,9 +333,7 @@ def _fly(args: argparse.Namespace, log) -> int:
         policy = load_policy(args.model, providers=providers)
     except PolicyFileError as err:
         return fail(ExitCode.BAD_MODEL, f"cannot use the model: {err}")
-    blank_depth = np.full((1, policy.camera.frames, policy.camera.height, policy.camera.width),
-                          policy.camera.max_range_m, np.float32)
-    blank_state = np.zeros((1, len(STATE_NAMES)), np.float32)
+    blank_depth, blank_state = policy.blank_observation()
     for _ in range(20):  # let TorchScript's profiling executor settle before the first real step
         policy.act(blank_depth, blank_state)
     cam = policy.camera

@@ -8,7 +8,6 @@ import time
 import numpy as np
 
 from companion.policy import LoadedPolicy
-from companion.spec import STATE_DIM
 
 
 class InferenceWorker:
@@ -48,10 +47,7 @@ class InferenceWorker:
         self._warm.wait(timeout=60.0)
 
     def _warm_up(self) -> None:
-        camera = self.policy.camera
-        depth = np.full((1, camera.frames, camera.height, camera.width), camera.max_range_m, np.float32)
-        state = np.zeros((1, STATE_DIM), np.float32)
-        state[0, 0] = 10.0  # a goal ahead
+        depth, state = self.policy.blank_observation()  # a goal ahead in an empty world
         for _ in range(self.WARMUP_CALLS):
             try:
                 self.policy.act(depth, state)

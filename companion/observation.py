@@ -335,7 +335,8 @@ class RememberedDepth:
              index: np.ndarray | slice = slice(None)) -> None:
         """Remember the clean frames [k, H, W] seen from ``pos_ned`` [k, 3] with heading ``yaw_rad`` [k].
 
-        The newest frame always replaces the one in the head slot; every ``every_steps``-th push stays.
+        The newest frame always replaces the one in the head slot; the first push after a reset and every
+        ``every_steps``-th one after it stay.
         """
         rows = np.arange(len(self._head))[index]
         cam = self.camera
@@ -351,8 +352,8 @@ class RememberedDepth:
         points += np.asarray(pos_ned, dtype=np.float32)[:, None, :]
         points[z[..., 0] >= cam.max_range_m] = np.nan  # max_range_m: no return
         self.points_ned[rows, self._head[rows]] = points
+        keep = self._pushes[rows] % self.memory.every_steps == 0  # the first push of a flight stays, then every n-th
         self._pushes[rows] += 1
-        keep = self._pushes[rows] % self.memory.every_steps == 0
         self._head[rows] = np.where(keep, (self._head[rows] + 1) % self.memory.slots, self._head[rows])
 
     def sector_ranges(self, pos_ned: np.ndarray, yaw_rad: np.ndarray,

@@ -181,6 +181,17 @@ class LoadedPolicy:
         """Entries of the state this policy takes (6, plus the remembered sector ranges)."""
         return len(state_names_for(self.memory))
 
+    def blank_observation(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(depth [1, frames, H, W], state [1, state_dim])`` of an empty world with the goal 10 m ahead
+        (nothing in range, nothing remembered): what warm-up and the load check feed the policy."""
+        camera = self.camera
+        depth = np.full((1, camera.frames, camera.height, camera.width), camera.max_range_m, np.float32)
+        state = np.zeros((1, self.state_dim), np.float32)
+        state[0, 0] = 10.0
+        if self.memory is not None:
+            state[0, len(STATE_NAMES):] = self.memory.range_m
+        return depth, state
+
     def act(self, depth_m: np.ndarray, state: np.ndarray) -> np.ndarray:
         """Deterministic actions [B, 3] (float32) for a batch of observations."""
         run_numpy = getattr(self.module, "run_numpy", None)
@@ -441,11 +452,7 @@ def load_policy(path: str | Path, *, check_forward: bool = True,
     governor = _check_governor(meta.get("governor"), path)
     policy = LoadedPolicy(module, meta, camera, action, period_s, path, task, version, notes, governor, memory)
     if check_forward:
-        blank_depth = np.full((1, camera.frames, camera.height, camera.width), camera.max_range_m, np.float32)
-        blank_state = np.zeros((1, state_dim), np.float32)
-        blank_state[0, 0] = 10.0
-        if memory is not None:
-            blank_state[0, len(STATE_NAMES):] = memory.range_m  # nothing remembered
+        blank_depth, blank_state = policy.blank_observation()
         try:
             out = policy.act(blank_depth, blank_state)
         except Exception as err:  # TorchScript errors span many lines: keep the one that says why

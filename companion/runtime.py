@@ -81,7 +81,7 @@ from companion.flight_modes import (
 )
 from companion.governor import GovernorSpec, SpeedGovernor
 from companion.inference import InferenceWorker
-from companion.observation import DepthFrameStack, build_state
+from companion.observation import DepthFrameStack, RememberedDepth, build_state
 from companion.obstacle_distance import ObstacleDistancePublisher
 from companion.policy import LoadedPolicy, torchscript_error_line
 from companion.recording import FlightRecorder
@@ -198,6 +198,8 @@ class Companion:
         self.low = policy.action.low_array().astype(np.float64)
         self.high = policy.action.high_array().astype(np.float64)
         self.stack = DepthFrameStack(1, policy.camera)
+        # A policy with remembered depth: the points of recent frames, moved with odometry (as in training).
+        self.memory = RememberedDepth(1, policy.camera, policy.memory) if policy.memory is not None else None
         self.obstacles = ObstacleDistancePublisher(policy.camera, link) if config.obstacle_distance else None
         # A policy trained with the governor flies with its own settings; others with the configured one, if any.
         governor = policy.governor if policy.governor is not None else config.governor
@@ -733,13 +735,18 @@ class Companion:
         # ones. Otherwise push the newest frame if the camera delivered one since the last push;
         # if it missed this period, keep the stack as it is: a frame twice in the stack is
         # something training never shows (the simulator renders a new frame every step).
+        pose = (odom.pos_ned[None], np.array([odom.yaw_rad]))
         if now - self._last_pushed_s > self.stale_s:
             self.stack.reset(frame.depth_m)
+            if self.memory is not None:
+                self.memory.reset(frame.depth_m[None], *pose)
             self._governor_turning[:] = 0.0  # a turn decided before the gap is not carried over it
             self._stack_seqs = [frame.seq] * self.policy.camera.history_frames
             info["stacked"] = "reset"
         elif frame.arrival_s > self._last_stacked_arrival_s:
             self.stack.push(frame.depth_m)
+            if self.memory is not None:
+                self.memory.push(frame.depth_m[None], *pose)
             self._stack_seqs = self._stack_seqs[1:] + [frame.seq]
             info["stacked"] = "pushed"
         else:
@@ -749,6 +756,8 @@ class Companion:
         self._last_pushed_s = now
         state = build_state(odom.pos_ned[None], np.array([odom.yaw_rad]), odom.vel_ned[None],
                             np.array([odom.yaw_rate_rad_s]), self.goal_ned[None])
+        if self.memory is not None:
+            state = np.concatenate([state, self.memory.sector_ranges(*pose)], axis=1)
         info["state"] = state[0]
         job = self.worker.submit(self.stack.frames, state)
         answer = self.worker.wait(job, deadline_s)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -11,12 +12,13 @@ from companion.frames import frd_to_ned, ned_to_frd, wrap_angle_rad
 from companion.observation import (
     DepthFrameError,
     DepthFrameStack,
+    RememberedDepth,
     build_state,
     crop_to_hfov,
     min_pool_depth,
     validate_depth_frame,
 )
-from companion.spec import DEFAULT_ACTION_SPEC, CameraSpec
+from companion.spec import DEFAULT_ACTION_SPEC, REALSENSE_D435, STATE_NAMES, CameraSpec, MemorySpec, state_names_for
 from sitl.sim.dynamics import KinematicDynamics
 
 
@@ -213,3 +215,61 @@ def test_blinded_check_default_is_off_for_a_real_sensor_only():
     # Off means an all-invalid frame (open sky above the sensor's range) is not a fault.
     validate_depth_frame(np.zeros((REALSENSE_D435.height, REALSENSE_D435.width), np.float32), REALSENSE_D435,
                          max_invalid_fraction=1.0)
+
+
+def _one_surface_frame(camera: CameraSpec, depth_m: float, rows: slice, cols: slice) -> np.ndarray:
+    frame = np.full((1, camera.height, camera.width), camera.max_range_m, np.float32)
+    frame[0, rows, cols] = depth_m
+    return frame
+
+
+def test_remembered_depth_keeps_a_surface_that_left_the_view_in_the_right_sector():
+    """A surface seen 2 m ahead stays in the memory, in the sector it lies in from wherever the vehicle
+    is now (odometry moves it), until it is older than the memory."""
+    memory = MemorySpec(steps=4, every_steps=2, range_m=5.0, pool=2)
+    names = memory.state_names()
+    remembered = RememberedDepth(1, REALSENSE_D435, memory)
+    centre = _one_surface_frame(REALSENSE_D435, 2.0, slice(9, 11), slice(15, 17))
+    empty = _one_surface_frame(REALSENSE_D435, 2.0, slice(0, 0), slice(0, 0))
+    still = (np.zeros((1, 3)), np.zeros(1))
+    remembered.reset(centre, *still)
+    ranges = dict(zip(names, remembered.sector_ranges(*still)[0]))
+    assert ranges["memory_level_az000_m"] == pytest.approx(2.0, abs=0.05)
+    assert all(v == 5.0 for k, v in ranges.items() if k != "memory_level_az000_m")
+    # Turned 90 deg right and 1 m up: the surface is now on the left, 2.2 m away, slightly below.
+    moved = (np.array([[0.0, 0.0, -1.0]]), np.array([math.pi / 2]))
+    remembered.push(empty, *moved)
+    ranges = dict(zip(names, remembered.sector_ranges(*moved)[0]))
+    near = {k: v for k, v in ranges.items() if v < 5.0}
+    assert set(near) == {"memory_low_az270_m"} and near["memory_low_az270_m"] == pytest.approx(math.hypot(2, 1), abs=0.1)
+    # Straight above it, the surface is in the down cap; far from it, nothing is near.
+    assert remembered.sector_ranges(np.array([[2.0, 0.0, -1.5]]), np.zeros(1))[0][names.index("memory_down_m")] < 1.6
+    assert np.all(remembered.sector_ranges(np.array([[20.0, 0.0, 0.0]]), np.zeros(1)) == 5.0)
+    # Forgotten once older than `steps`: 4 more empty frames push it out of the 2 slots.
+    for _ in range(4):
+        remembered.push(empty, *moved)
+    assert np.all(remembered.sector_ranges(*moved) == 5.0)
+
+
+def test_remembered_depth_unprojects_with_the_mount_pitch_and_resets_per_row():
+    pitched = dataclasses.replace(REALSENSE_D435, mount_pitch_deg=30.0)
+    memory = MemorySpec(steps=2, every_steps=1, range_m=5.0, pool=1)
+    remembered = RememberedDepth(2, pitched, memory)
+    frame = _one_surface_frame(pitched, 2.0, slice(9, 11), slice(15, 17))  # the optical axis, 30 deg up
+    remembered.reset(np.repeat(frame, 2, axis=0), np.zeros((2, 3)), np.zeros(2))
+    names = memory.state_names()
+    ranges = remembered.sector_ranges(np.zeros((2, 3)), np.zeros(2))
+    assert ranges[0, names.index("memory_high_az000_m")] == pytest.approx(2.0, abs=0.15)  # 15-45 deg up
+    remembered.reset(_one_surface_frame(pitched, 2.0, slice(0, 0), slice(0, 0)), np.zeros((1, 3)), np.zeros(1),
+                     index=np.array([1]))
+    ranges = remembered.sector_ranges(np.zeros((2, 3)), np.zeros(2))
+    assert ranges[0].min() < 2.1 and np.all(ranges[1] == 5.0)  # row 1 forgot, row 0 did not
+
+
+def test_memory_spec_names_its_state_and_refuses_bad_settings():
+    memory = MemorySpec()
+    assert memory.slots == 5 and len(memory.state_names()) == memory.num_sectors == 26
+    assert state_names_for(None) == STATE_NAMES and state_names_for(memory)[len(STATE_NAMES):] == memory.state_names()
+    for bad in ({"steps": 0}, {"every_steps": 11}, {"range_m": 0.0}, {"pool": 0}):
+        with pytest.raises(ValueError, match="memory"):
+            MemorySpec(**bad)
