@@ -346,6 +346,11 @@ def _fly(args: argparse.Namespace, log) -> int:
               providers=getattr(policy.module, "providers", None))  # what onnxruntime really uses
     for note in policy.notes:  # how an older policy file was read
         log.event("model_note", note)
+    if policy.memory is not None:  # the state then carries what the camera showed recently, moved with odometry
+        m = policy.memory
+        log.event("model_note", f"the policy remembers depth: {m.steps} control steps "
+                                f"({m.steps * policy.control_period_s:g} s), nearest point per direction sector "
+                                f"within {m.range_m:g} m, from the camera's frames and odometry")
     if policy.governor is not None:  # trained with it: it always flies with it (--governor or not)
         log.event("model_note", "the policy was trained with the speed governor after it: the companion applies it "
                                 "with the file's settings")
@@ -380,7 +385,8 @@ def _fly(args: argparse.Namespace, log) -> int:
         if args.record:
             try:
                 recorder = FlightRecorder(args.record, policy.camera, policy.control_period_s, args.model,
-                                          max_bytes=int(args.record_max_mb * 1e6), keep=args.record_keep)
+                                          max_bytes=int(args.record_max_mb * 1e6), keep=args.record_keep,
+                                          state_dim=policy.state_dim)
             except OSError as err:
                 return fail(ExitCode.ERROR, f"cannot write the recording {args.record}: {err.strerror}")
         key = load_signing_key(args.signing_key) if args.signing_key else None  # checked by parse_args

@@ -19,7 +19,8 @@ step            uint32             control step index
 frame_seq       uint32             sequence number of the depth frame
 hold            uint8              1 if the step sent a hold instead of the policy's action
 depth_m         float32 [H, W]     newest depth frame as the policy saw it (metres)
-state           float32 [6]        the policy's state input (``STATE_NAMES``)
+state           float32 [S]        the policy's state input (``policy.json``'s ``state_names``: 6, more
+                                   with remembered depth; the header's ``state_dim``, absent: 6)
 action          float32 [3]        the command sent (``vel_fwd_m_s, vel_down_m_s, yaw_rate_rad_s``)
 pos_ned_m       float32 [3]        position from odometry
 yaw_rad         float32            heading from odometry
@@ -44,7 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from companion.flightlog import rotate_files
-from companion.spec import CameraSpec
+from companion.spec import STATE_DIM, CameraSpec
 
 FORMAT = "swarmnav-recording"
 VERSION = 1
@@ -58,11 +59,15 @@ class RecordingError(ValueError):
     """A file that is not a readable flight recording."""
 
 
-def record_dtype(camera: CameraSpec) -> np.dtype:
-    """The binary layout of one record for ``camera``."""
+#: Largest state a recording may declare (the paper's 6 plus remembered depth's sectors, with room).
+MAX_RECORDED_STATE_DIM = 256
+
+
+def record_dtype(camera: CameraSpec, state_dim: int = STATE_DIM) -> np.dtype:
+    """The binary layout of one record for ``camera`` and a state of ``state_dim`` entries."""
     return np.dtype([
         ("t_wall_s", "<f8"), ("t_mono_s", "<f8"), ("step", "<u4"), ("frame_seq", "<u4"), ("hold", "u1"),
-        ("depth_m", "<f4", (camera.height, camera.width)), ("state", "<f4", (6,)), ("action", "<f4", (3,)),
+        ("depth_m", "<f4", (camera.height, camera.width)), ("state", "<f4", (state_dim,)), ("action", "<f4", (3,)),
         ("pos_ned_m", "<f4", (3,)), ("yaw_rad", "<f4"),
     ])
 
@@ -71,9 +76,10 @@ class FlightRecorder:
     """Appends one record per control step to a recording file."""
 
     def __init__(self, path: str | Path, camera: CameraSpec, control_period_s: float, policy_path: str,
-                 max_bytes: int | None = None, keep: int = DEFAULT_RECORD_KEEP) -> None:
+                 max_bytes: int | None = None, keep: int = DEFAULT_RECORD_KEEP, state_dim: int = STATE_DIM) -> None:
         self.path = Path(path)
-        self.dtype = record_dtype(camera)
+        self.state_dim = state_dim
+        self.dtype = record_dtype(camera, state_dim)
         self.camera, self.control_period_s, self.policy_path = camera, control_period_s, policy_path
         self.max_bytes, self.keep = max_bytes, keep
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -87,6 +93,7 @@ class FlightRecorder:
         header = {
             "format": FORMAT, "version": VERSION, "camera": self.camera.to_dict(),
             "control_period_s": self.control_period_s, "policy": self.policy_path, "part": self.part,
+            "state_dim": self.state_dim,
             "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
             "record_dtype": [list(f) if len(f) == 2 else [f[0], f[1], list(f[2])] for f in self.dtype.descr],
         }
@@ -137,7 +144,12 @@ def read_recording(path: str | Path) -> tuple[dict, np.ndarray]:
         camera = CameraSpec(**header["camera"])
     except (KeyError, TypeError, ValueError) as err:
         raise RecordingError(f"{path}: invalid camera in the header ({err})") from err
-    dtype = record_dtype(camera)
+    state_dim = header.get("state_dim", STATE_DIM)  # recordings written before it existed: the paper's 6
+    if not (isinstance(state_dim, int) and not isinstance(state_dim, bool)
+            and STATE_DIM <= state_dim <= MAX_RECORDED_STATE_DIM):
+        raise RecordingError(f"{path}: state_dim must be an integer in {STATE_DIM}..{MAX_RECORDED_STATE_DIM}, "
+                             f"header says {state_dim!r:.40}")
+    dtype = record_dtype(camera, state_dim)
     body = data[end + 1:]
     count = len(body) // dtype.itemsize
     records = np.frombuffer(body[: count * dtype.itemsize], dtype=dtype)

@@ -25,7 +25,7 @@ from torch import nn  # noqa: E402
 
 from companion.governor import GovernorSpec  # noqa: E402
 from companion.policy import build_metadata, save_policy  # noqa: E402
-from companion.spec import REALSENSE_D435, ActionSpec, CameraSpec  # noqa: E402
+from companion.spec import REALSENSE_D435, ActionSpec, CameraSpec, MemorySpec, state_names_for  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 CONTROL_PERIOD_S = 0.1
@@ -62,16 +62,42 @@ class GoalSeeker(nn.Module):
         return action
 
 
+class RememberingTurner(nn.Module):
+    """A policy with remembered depth (``MemorySpec``): forward at 1 m/s until something is remembered
+    within ``turn_m`` at its own level (state columns ``level``), then it stops and turns right."""
+
+    def __init__(self, low: list[float], high: list[float], level: tuple[int, int], turn_m: float) -> None:
+        super().__init__()
+        self.register_buffer("low", torch.tensor(low, dtype=torch.float32))
+        self.register_buffer("high", torch.tensor(high, dtype=torch.float32))
+        self.first, self.last = level
+        self.turn_m = turn_m
+
+    def forward(self, depth: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+        near = state[:, self.first:self.last].amin(dim=1) < self.turn_m
+        fwd = torch.where(near, torch.zeros_like(state[:, 0]), torch.ones_like(state[:, 0]))
+        yaw_rate = torch.where(near, torch.full_like(fwd, 0.5), torch.zeros_like(fwd))
+        action = torch.stack([fwd, 0.8 * state[:, 2], yaw_rate], dim=1)
+        return torch.maximum(torch.minimum(action, self.high), self.low)
+
+
 def make_policy(path: Path, *, period_s: float = CONTROL_PERIOD_S, camera: CameraSpec | None = None,
-                nan_above_speed: float = 0.0, brake_depth_m: float = 0.0, governor: GovernorSpec | None = None) -> Path:
+                nan_above_speed: float = 0.0, brake_depth_m: float = 0.0, governor: GovernorSpec | None = None,
+                memory: MemorySpec | None = None, turn_m: float = 3.5) -> Path:
     """Save a contract-following TorchScript test policy at ``path`` (default camera: the D435 preset,
-    what ``sitl.vehicle`` carries by default; ``governor``: declared as trained with it)."""
+    what ``sitl.vehicle`` carries by default; ``governor``: declared as trained with it). With ``memory``
+    the policy is a :class:`RememberingTurner` (turning within ``turn_m``), else a :class:`GoalSeeker`."""
     camera = camera or REALSENSE_D435
     action = ActionSpec()
-    module = GoalSeeker(list(action.low), list(action.high), nan_above_speed, brake_depth_m)
+    if memory is not None:
+        names = state_names_for(memory)
+        level = [i for i, name in enumerate(names) if name.startswith("memory_level_")]
+        module = RememberingTurner(list(action.low), list(action.high), (level[0], level[-1] + 1), turn_m)
+    else:
+        module = GoalSeeker(list(action.low), list(action.high), nan_above_speed, brake_depth_m)
     provenance = {"method": "test goal seeker", "scenario": "none", "steps": 0, "wall_time_s": 0.0,
                   "git_commit": "test", "evaluation": {}}
-    save_policy(module, build_metadata(camera, action, period_s, provenance, governor=governor), path)
+    save_policy(module, build_metadata(camera, action, period_s, provenance, governor=governor, memory=memory), path)
     return path
 
 

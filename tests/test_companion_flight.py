@@ -19,6 +19,7 @@ import pytest
 
 from companion.governor import GovernorSpec
 from companion.recording import read_recording
+from companion.spec import MemorySpec, state_names_for
 from tests.companion_helpers import GroundStation, Rig, ScenarioPool, make_policy, scenario
 
 pytestmark = pytest.mark.timeout(150)
@@ -88,13 +89,22 @@ def _start_governor(rig: Rig, tmp) -> None:
                         "--takeoff", "3", "--exit-on-arrival", "--timeout", "60")
 
 
+def _start_memory(rig: Rig, tmp) -> None:
+    # Remembers 5 s (so the pole outlives the turn that takes it out of the 87 deg view), turns within 3.5 m.
+    rig.memory = MemorySpec(steps=50, every_steps=2, range_m=5.0, pool=2)
+    rig.record = tmp / "memory.snrec"
+    rig.start_vehicle("--airborne", "--start", "0,0,-3", "--cylinder", "10,0,0.5")
+    rig.start_companion(make_policy(tmp / "memory.pt", memory=rig.memory), "--goal", "20,0,-3", "--arm",
+                        "--takeoff", "3", "--exit-on-arrival", "--timeout", "12", "--record", str(rig.record))
+
+
 @pytest.fixture(scope="module")
 def rigs(request, tmp_path_factory):
     pool = ScenarioPool(request, tmp_path_factory, {
         "px4_15m": _start_px4_15m, "ardupilot_15m": _start_ardupilot_15m, "pilot_engages": _start_pilot_engages,
         "gcs_goal": _start_gcs_goal,
         "signing": _start_signing, "unsigned_companion": _start_unsigned_companion, "obstacle": _start_obstacle,
-        "governor": _start_governor})
+        "governor": _start_governor, "memory": _start_memory})
     yield pool
     pool.stop_all()
 
@@ -315,3 +325,25 @@ def test_the_governor_takes_a_policy_that_never_brakes_round_a_pole(rigs):
     track = np.array([p for line in rig.trace.read_text().splitlines() for p in [json.loads(line)["pos_ned"][0]]])
     closest_m = float(np.hypot(track[:, 0] - 10.0, track[:, 1]).min())
     assert closest_m > 0.5 + 0.3, closest_m  # the pole's radius plus the vehicle's collision radius R
+
+
+@scenario("memory")
+def test_remembered_depth_keeps_a_pole_the_camera_no_longer_sees(rigs):
+    """A policy with remembered depth, flown by the real companion over MAVLink against sitl.vehicle: the
+    companion builds the sector ranges from the camera's frames and the odometry. The test policy stops at the
+    pole and turns right; once the pole has left the camera's view, the state still has it, on the left."""
+    rig = rigs["memory"]
+    assert rig.wait_companion(60) == 7  # never arrives: it turns at the pole until its timeout
+    rig.procs.stop_all()
+    header, records = read_recording(rig.record)
+    names = state_names_for(rig.memory)
+    assert header["state_dim"] == len(names) == records["state"].shape[1]
+    column = {name: i for i, name in enumerate(names)}
+    ahead = records["state"][:, column["memory_level_az000_m"]]
+    left = records["state"][:, [column["memory_level_az270_m"], column["memory_level_az315_m"]]].min(axis=1)
+    above_horizon_m = records["depth_m"][:, :10].min(axis=(1, 2))  # the D435's upper half: the pole, never the ground
+    assert ahead[0] == 5.0 and above_horizon_m[0] > 9.0  # nothing remembered at the start, the pole 10 m off
+    assert ahead.min() < 3.6  # remembered ahead as it came close (from the frames it saw)
+    unseen = (above_horizon_m > 9.0) & (np.arange(len(records)) > int(np.argmin(ahead)))
+    assert unseen.any(), "the pole never left the camera's view"
+    assert np.all(left[unseen][:5] < 4.5), "the pole left the view and the memory with it"

@@ -11,7 +11,7 @@ import torch
 
 from companion.policy import (FORMAT_VERSION, PolicyFileError, build_metadata, load_policy, save_policy,
                              torchscript_error_line)
-from companion.spec import DEFAULT_ACTION_SPEC, CameraSpec
+from companion.spec import DEFAULT_ACTION_SPEC, REALSENSE_D435, CameraSpec, MemorySpec, state_names_for
 from sitl.learn.agent import AgentConfig, SacAeAgent
 from sitl.learn.export import export_policy
 
@@ -229,6 +229,14 @@ HOSTILE = {
     "provenance_string": (_meta(provenance="me"), "provenance must be a JSON object"),
     "body_frame_number": (_meta(body_frame=3), "body_frame must be a string"),
     "not_an_object": ("[1, 2, 3]", "policy.json is not a JSON object"),
+    # remembered depth: every setting named and in range, and the state layout that goes with it
+    "memory_string": (_meta(memory="1s"), "memory must be a JSON object"),
+    "memory_missing_setting": (_meta(memory={"steps": 10, "every_steps": 2, "range_m": 5.0}),
+                               "memory must have exactly the settings"),
+    "memory_steps_huge": (_meta(memory={**MemorySpec().to_dict(), "steps": 10 ** 6}), "memory steps must be in 1..100"),
+    "memory_range_nan": (_meta(memory={**MemorySpec().to_dict(), "range_m": float("nan")}), "memory range_m must be finite"),
+    "memory_range_zero": (_meta(memory={**MemorySpec().to_dict(), "range_m": 0.0}), "memory range_m must be in (0, 100] m"),
+    "memory_without_its_state": (_meta(memory=MemorySpec().to_dict()), "state layout"),
 }
 
 
@@ -369,3 +377,33 @@ def test_bad_version_2_camera_fields_are_refused(tmp_path, changes, reason):
     del missing["depth"]["mount_pitch_deg"]
     with pytest.raises(PolicyFileError, match="lacks the field 'mount_pitch_deg'"):
         load_policy(_write_raw(tmp_path / "missing.pt", missing))
+
+
+def test_a_policy_with_remembered_depth_round_trips_with_its_state_layout(tmp_path):
+    """The trainer's agent with remembered depth exports a file whose policy.json declares the memory and the
+    longer state; it loads with both, flies the sector ranges as the agent does, and its ONNX twin agrees.
+    A file without ``memory`` (every file written before it existed) loads with the paper's state."""
+    memory = MemorySpec()
+    torch.manual_seed(0)
+    agent = SacAeAgent(AgentConfig(hidden_dim=32), REALSENSE_D435, DEFAULT_ACTION_SPEC, memory=memory)
+    path = tmp_path / "memory.pt"
+    export_policy(agent, path, 0.1, {"method": "sac_ae"})
+    policy = load_policy(path)
+    assert policy.memory == memory and policy.state_dim == 6 + memory.num_sectors
+    assert policy.metadata["memory"] == memory.to_dict()
+    assert policy.metadata["state_names"] == list(state_names_for(memory))
+    rng = np.random.default_rng(1)
+    depth = rng.uniform(0.2, 10.0, (4, 3, 20, 32)).astype(np.float32)
+    state = np.concatenate([rng.normal(0, 5, (4, 6)), rng.uniform(0, 5, (4, memory.num_sectors))], axis=1)
+    state = state.astype(np.float32)
+    np.testing.assert_allclose(policy.act(depth, state), agent.act(depth, state, explore=False), atol=1e-5)
+    near = state.copy()
+    near[:, 6:] = 0.5  # something remembered close all round changes what it does
+    assert not np.allclose(policy.act(depth, near), policy.act(depth, state))
+    onnx_twin = load_policy(path.with_suffix(".onnx"))
+    assert onnx_twin.memory == memory
+    np.testing.assert_allclose(onnx_twin.act(depth, state), policy.act(depth, state), atol=1e-4)
+    with pytest.raises(Exception, match=r"state must be \[batch, 32\]"):
+        policy.act(depth, state[:, :6])
+    plain = load_policy(_write_raw(tmp_path / "plain.pt", _meta()))
+    assert plain.memory is None and plain.state_dim == 6

@@ -173,3 +173,28 @@ def test_a_noisy_real_camera_reaches_the_policy_through_the_companion_conversion
     assert depth.shape == (32, 3, REALSENSE_D435.height, REALSENSE_D435.width)
     assert depth.min() > 0 and depth.max() == REALSENSE_D435.max_range_m  # no zeros: holes read max range
     assert 0.3 < np.mean(depth[:, -1] == REALSENSE_D435.max_range_m) < 1.0  # holes and sky, but not only
+
+
+def test_remembered_depth_in_the_state_is_built_from_the_frames_and_poses_the_companion_would_have():
+    """With ``SimConfig.memory`` every UAV's state carries the sector ranges after its 6 entries, built by
+    companion.observation.RememberedDepth from each rendered frame and the pose it was seen from: the same
+    frames and odometry fed to a separate instance (as the companion is fed) give the same state."""
+    from companion.observation import RememberedDepth
+    from companion.spec import REALSENSE_D435, MemorySpec
+
+    memory = MemorySpec(steps=6, every_steps=2)
+    config = SimConfig(num_uavs=8, num_worlds=2, camera=REALSENSE_D435, memory=memory,
+                       scenario=ScenarioConfig(name="random", density=density_from_name("small")))
+    env = SwarmEnv(config, seed=3)
+    obs = env.reset()
+    companion_side = RememberedDepth(env.num_agents, REALSENSE_D435, memory)
+    d = env.dynamics
+    companion_side.reset(env.frames.latest, d.pos_ned, d.yaw_rad)
+    nearest = []
+    for _ in range(8):
+        assert obs.state.shape == (env.num_agents, 6 + memory.num_sectors)
+        np.testing.assert_array_equal(obs.state[:, 6:], companion_side.sector_ranges(d.pos_ned, d.yaw_rad))
+        nearest.append(obs.state[:, 6:].min())
+        obs, *_ = env.step(straight_to_goal(obs.state, env.action_spec))
+        companion_side.push(env.frames.latest, d.pos_ned, d.yaw_rad)
+    assert min(nearest) < memory.range_m  # a crowded start: some UAV remembers a neighbour within range
