@@ -3,6 +3,7 @@ recordings, odometry frames, modes, the control clock, systemd notify, signing k
 
 from __future__ import annotations
 
+import json
 import math
 import socket
 import subprocess
@@ -180,6 +181,25 @@ def test_recording_roundtrip_and_replay_timing(tmp_path):
     (bad := tmp_path / "bad.snrec").write_bytes(b"not a recording\n")
     with pytest.raises(RecordingError, match="not a swarmnav recording"):
         read_recording(bad)
+
+
+def test_a_recording_keeps_a_longer_state_and_refuses_a_bad_state_dim(tmp_path):
+    """A policy with remembered depth records its whole state (the header says how long); a recording
+    without ``state_dim`` (written before it existed) reads as the paper's 6."""
+    cam = CameraSpec(width=8, height=8)
+    path = tmp_path / "memory.snrec"
+    rec = FlightRecorder(path, cam, 0.1, "policy.pt", state_dim=32)
+    rec.write(t_wall_s=1.0, t_mono_s=1.0, step=0, frame_seq=0, hold=False, depth_m=np.ones((8, 8), np.float32),
+              state=np.arange(32, dtype=np.float32), action=np.zeros(3), pos_ned_m=np.zeros(3), yaw_rad=0.0)
+    rec.close()
+    header, records = read_recording(path)
+    assert header["state_dim"] == 32 and records["state"][0].tolist() == list(range(32))
+    line, body = path.read_bytes().split(b"\n", 1)
+    for bad in (True, 3, "32", 10 ** 6):
+        (broken := tmp_path / "broken.snrec").write_bytes(
+            json.dumps({**json.loads(line), "state_dim": bad}).encode() + b"\n" + body)
+        with pytest.raises(RecordingError, match="state_dim must be an integer in 6..256"):
+            read_recording(broken)
 
 
 # --------------------------------------------------------------------------- odometry frames and modes
