@@ -267,7 +267,8 @@ class Recipe:
                               "max_episode_steps": cfg.time_limit(self.evaluation_steps)},
                   "gates": {"episodes": self.gate_episodes,
                             "gates": [dataclasses.asdict(g) for g in self.stages[index].gates]},
-                  "wall_time_s_before_final_evaluation": round(self.state["wall_s"], 1)}
+                  # unrounded: policy.json's wall_time_s is rounded once, from this plus the final evaluation
+                  "wall_time_s_before_final_evaluation": self.state["wall_s"]}
         path = trainer.finish(recipe=recipe, evaluation_steps=self.evaluation_steps)
         for name in ("policy.pt", "final_eval.json"):  # the recipe draws its own learning curve
             if (sdir / name).is_file():
@@ -312,7 +313,8 @@ class Recipe:
             self._rescore_last()
         self._gate_last()
         path = self._export()
-        self.state["wall_s"] = self._elapsed()
+        # Rounded as policy.json's wall_time_s is, from a later instant: never below it.
+        self.state["wall_s"] = round(self._elapsed(), 1)
         self.state["done"] = True
         _save_state(self.run_dir, self.state)
         plot_recipe_curve(self.run_dir, self.stages, self.run_dir / "learning_curve.png")
