@@ -335,6 +335,11 @@ class MemorySpec:
         return asdict(self)
 
 
+def memory_for_steps(steps: int) -> MemorySpec | None:
+    """Remembered depth over ``steps`` control steps, every other setting the default (0: none)."""
+    return MemorySpec(steps=steps, every_steps=min(MemorySpec.every_steps, steps)) if steps else None
+
+
 def state_names_for(memory: MemorySpec | None) -> tuple[str, ...]:
     """The state layout of a policy with (or without) remembered depth."""
     return STATE_NAMES + (memory.state_names() if memory is not None else ())

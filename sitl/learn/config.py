@@ -15,8 +15,8 @@ import numpy as np
 import torch
 
 from companion.governor import GOVERNOR_PRESETS, describe_presets
-from companion.spec import (CAMERA_PRESETS, DEFAULT_TASK_SPEC, MAX_FRAME_STRIDE, MEMORY_MAX_STEPS, CameraSpec, MemorySpec,
-                            check_frame_ages)
+from companion.spec import (CAMERA_PRESETS, DEFAULT_TASK_SPEC, MAX_FRAME_STRIDE, MEMORY_MAX_STEPS, CameraSpec,
+                            check_frame_ages, memory_for_steps)
 from sitl.cli_args import MAX_THREADS
 from sitl.learn.agent import METHODS, AgentConfig
 from sitl.sim.camera import EDGE_HOLE_MODELS, StereoNoise
@@ -542,18 +542,12 @@ def make_sim_config(cfg: TrainConfig, num_worlds: int, record_paths: bool = Fals
                                                       edge_holes=cfg.camera_noise_edges)
                      if cfg.camera_noise else None,
                      mount_pitch_jitter_deg=cfg.mount_pitch_jitter_deg if training else 0.0,
-                     memory=training_memory(cfg), max_episode_steps=cfg.max_episode_steps, record_paths=record_paths,
+                     memory=memory_for_steps(cfg.memory_steps), max_episode_steps=cfg.max_episode_steps, record_paths=record_paths,
                      reward=RewardConfig(arrival_radius_m=cfg.arrival_radius_m, r_collision=cfg.collision_reward,
                                          r_collision_uav_extra=cfg.uav_collision_extra_reward,
                                          w_avoid=cfg.avoid_weight, w_blind=cfg.blind_motion_reward,
                                          w_corridor=cfg.corridor_speed_reward,
                                          avoid_counts_ground=cfg.avoid_counts_ground))
-
-
-def training_memory(cfg: TrainConfig) -> MemorySpec | None:
-    """The remembered-depth input ``cfg`` trains with (None: off), every other setting the spec's default."""
-    return MemorySpec(steps=cfg.memory_steps, every_steps=min(MemorySpec.every_steps, cfg.memory_steps)) \
-        if cfg.memory_steps else None
 
 
 def parse_density_range(text: str) -> tuple[float, float] | None:
