@@ -310,6 +310,7 @@ class RememberedDepth:
         self._pooled = dataclasses.replace(camera, width=width, height=height, vfov_deg=camera.vertical_fov_deg)
         tan_u, tan_v = self._pooled.pixel_tangents()
         cp, sp = np.cos(camera.mount_pitch_rad), np.sin(camera.mount_pitch_rad)
+        self._mount_cos_sin = (cp, sp)
         # A point at planar depth z in pixel p lies z * ray[p] from the camera, in the heading FRD frame
         # (a camera pitched up by p: its ray (1, u, v) is (cp + v sp, u, v cp - sp)).
         u, v = np.meshgrid(tan_u, tan_v)
@@ -376,6 +377,9 @@ class RememberedDepth:
         cy, sy = np.cos(yaw_rad)[row], np.sin(yaw_rad)[row]
         fwd = cy * d_ned[:, 0] + sy * d_ned[:, 1]
         right = -sy * d_ned[:, 0] + cy * d_ned[:, 1]
+        if self.memory.outside_view:  # drop what the camera looks at now: the image shows it (or its absence)
+            keep = ~self._in_view(fwd, right, d_ned[:, 2])
+            row, d_ned, dist, fwd, right = row[keep], d_ned[keep], dist[keep], fwd[keep], right[keep]
         sin_up = -d_ned[:, 2] / np.maximum(dist, 1e-6)
         band = np.searchsorted(self._sin_band_edges, sin_up)
         count = self._band_count[band]
@@ -384,3 +388,13 @@ class RememberedDepth:
         flat = out.reshape(-1)
         np.minimum.at(flat, row * self.memory.num_sectors + self._band_offset[band] + sector, dist)
         return out
+
+    def _in_view(self, fwd: np.ndarray, right: np.ndarray, down: np.ndarray) -> np.ndarray:
+        """Whether heading-frame offsets lie inside the camera's field of view (its mount pitch included)."""
+        cp, sp = self._mount_cos_sin
+        along = fwd * cp - down * sp  # the optical axis
+        below = fwd * sp + down * cp  # the image's down direction
+        cam = self.camera
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return ((along > 0) & (np.abs(right) <= along * cam.tan_half_hfov)
+                    & (np.abs(below) <= along * cam.tan_half_vfov))

@@ -241,6 +241,11 @@ def _finite_number(value: object, path: str, name: str) -> float:
     return number
 
 
+def _boolean(value: object, path: str, name: str) -> bool:
+    _require(isinstance(value, bool), path, f"{name} must be true or false, file says {value!r:.40}")
+    return value
+
+
 def _integer(value: object, path: str, name: str, low: int, high: int) -> int:
     ok = _is_number(value) and math.isfinite(_as_float(value)) and _as_float(value).is_integer()
     _require(ok, path, f"{name} must be an integer, file says {value!r:.40}")
@@ -373,12 +378,13 @@ def _check_memory(memory: object, path: str) -> MemorySpec | None:
     _require(isinstance(memory, dict), path, f"memory must be a JSON object, file says {memory!r:.40}")
     names = [f.name for f in dataclasses.fields(MemorySpec)]
     _require(sorted(memory) == sorted(names), path,
-             f"memory must have exactly the settings {names}, file says {sorted(memory)!r:.80}")
+             f"memory must have exactly the settings {names}, file says {sorted(memory)!r:.100}")
     try:
         return MemorySpec(steps=_integer(memory["steps"], path, "memory steps", 1, MEMORY_MAX_STEPS),
                           every_steps=_integer(memory["every_steps"], path, "memory every_steps", 1, MEMORY_MAX_STEPS),
                           range_m=_finite_number(memory["range_m"], path, "memory range_m"),
-                          pool=_integer(memory["pool"], path, "memory pool", 1, 16))
+                          pool=_integer(memory["pool"], path, "memory pool", 1, 16),
+                          outside_view=_boolean(memory["outside_view"], path, "memory outside_view"))
     except ValueError as err:
         raise PolicyFileError(f"{path}: {err}") from None
 

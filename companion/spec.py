@@ -302,6 +302,8 @@ class MemorySpec:
     every_steps: int = 2  # one frame kept every this many steps (the newest always)
     range_m: float = 5.0  # remembered ranges are clipped here
     pool: int = 2  # frames are min-pooled by this factor before they are remembered
+    #: Count only remembered points outside the camera's view now (what the image cannot show); False: all.
+    outside_view: bool = False
 
     def __post_init__(self) -> None:
         if not 1 <= self.steps <= MEMORY_MAX_STEPS:
@@ -312,6 +314,8 @@ class MemorySpec:
             raise ValueError(f"memory range_m must be in (0, 100] m, got {self.range_m}")
         if not 1 <= self.pool <= 16:
             raise ValueError(f"memory pool must be in 1..16, got {self.pool}")
+        if not isinstance(self.outside_view, bool):
+            raise ValueError(f"memory outside_view must be true or false, got {self.outside_view!r}")
 
     @property
     def slots(self) -> int:
@@ -335,9 +339,11 @@ class MemorySpec:
         return asdict(self)
 
 
-def memory_for_steps(steps: int) -> MemorySpec | None:
-    """Remembered depth over ``steps`` control steps, every other setting the default (0: none)."""
-    return MemorySpec(steps=steps, every_steps=min(MemorySpec.every_steps, steps)) if steps else None
+def memory_for_steps(steps: int, outside_view: bool = False) -> MemorySpec | None:
+    """Remembered depth over ``steps`` control steps (``outside_view``: of what is out of view now only),
+    every other setting the default (0 steps: none)."""
+    return MemorySpec(steps=steps, every_steps=min(MemorySpec.every_steps, steps),
+                      outside_view=outside_view) if steps else None
 
 
 def state_names_for(memory: MemorySpec | None) -> tuple[str, ...]:

@@ -135,6 +135,8 @@ class TrainConfig:
                                   "sees the nearest point its camera showed in the last this many control steps, "
                                   "per direction sector around it (10: 1 s); 0: off (docs/training.md "
                                   "'Remembered depth')")
+    memory_outside_view: bool = _param(False, "with --memory-steps: the sectors count only remembered points "
+                                              "outside the camera's view now (docs/training.md 'Remembered depth')")
     avoid_counts_ground: bool = _param(False, "eq. 4's d_min counts the ground, as in the paper (default: UAVs and "
                                               "obstacles only; docs/training.md)")
     collision_reward: float = _param(RewardConfig.r_collision,
@@ -289,6 +291,8 @@ class TrainConfig:
             raise ValueError(f"corridor_speed_reward must be in [-10, 0], got {self.corridor_speed_reward}")
         if not 0.0 <= self.teacher_bc_weight <= 100.0:
             raise ValueError(f"teacher_bc_weight must be in [0, 100], got {self.teacher_bc_weight}")
+        if self.memory_outside_view and not self.memory_steps:
+            raise ValueError("memory_outside_view needs remembered depth: set memory_steps (e.g. 10)")
         if self.circle_teacher_right and self.method != "distill" and self.teacher_bc_weight <= 0:
             raise ValueError("circle_teacher_right needs a teacher: the distill method or teacher_bc_weight > 0")
         if self.governor_setting not in GOVERNOR_PRESETS:
@@ -542,7 +546,8 @@ def make_sim_config(cfg: TrainConfig, num_worlds: int, record_paths: bool = Fals
                                                       edge_holes=cfg.camera_noise_edges)
                      if cfg.camera_noise else None,
                      mount_pitch_jitter_deg=cfg.mount_pitch_jitter_deg if training else 0.0,
-                     memory=memory_for_steps(cfg.memory_steps), max_episode_steps=cfg.max_episode_steps, record_paths=record_paths,
+                     memory=memory_for_steps(cfg.memory_steps, cfg.memory_outside_view),
+                     max_episode_steps=cfg.max_episode_steps, record_paths=record_paths,
                      reward=RewardConfig(arrival_radius_m=cfg.arrival_radius_m, r_collision=cfg.collision_reward,
                                          r_collision_uav_extra=cfg.uav_collision_extra_reward,
                                          w_avoid=cfg.avoid_weight, w_blind=cfg.blind_motion_reward,
