@@ -266,10 +266,20 @@ def test_remembered_depth_unprojects_with_the_mount_pitch_and_resets_per_row():
     assert ranges[0].min() < 2.1 and np.all(ranges[1] == 5.0)  # row 1 forgot, row 0 did not
 
 
+def test_remembered_depth_outside_view_counts_only_what_the_camera_does_not_show_now():
+    memory = MemorySpec(steps=4, every_steps=2, range_m=5.0, pool=2, outside_view=True)
+    names = memory.state_names()
+    remembered = RememberedDepth(1, REALSENSE_D435, memory)
+    remembered.reset(_one_surface_frame(REALSENSE_D435, 2.0, slice(9, 11), slice(15, 17)), np.zeros((1, 3)), np.zeros(1))
+    assert np.all(remembered.sector_ranges(np.zeros((1, 3)), np.zeros(1)) == 5.0)  # in view: the image has it
+    turned = remembered.sector_ranges(np.zeros((1, 3)), np.array([math.pi / 2]))[0]  # out of view on the left
+    assert {k for k, v in zip(names, turned) if v < 5.0} == {"memory_level_az270_m"}
+
+
 def test_memory_spec_names_its_state_and_refuses_bad_settings():
     memory = MemorySpec()
     assert memory.slots == 5 and len(memory.state_names()) == memory.num_sectors == 26
     assert state_names_for(None) == STATE_NAMES and state_names_for(memory)[len(STATE_NAMES):] == memory.state_names()
-    for bad in ({"steps": 0}, {"every_steps": 11}, {"range_m": 0.0}, {"pool": 0}):
+    for bad in ({"steps": 0}, {"every_steps": 11}, {"range_m": 0.0}, {"pool": 0}, {"outside_view": 1}):
         with pytest.raises(ValueError, match="memory"):
             MemorySpec(**bad)

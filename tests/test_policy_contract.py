@@ -237,6 +237,8 @@ HOSTILE = {
     "memory_range_nan": (_meta(memory={**MemorySpec().to_dict(), "range_m": float("nan")}), "memory range_m must be finite"),
     "memory_range_zero": (_meta(memory={**MemorySpec().to_dict(), "range_m": 0.0}), "memory range_m must be in (0, 100] m"),
     "memory_without_its_state": (_meta(memory=MemorySpec().to_dict()), "state layout"),
+    "memory_outside_view_string": (_meta(memory={**MemorySpec().to_dict(), "outside_view": "yes"}),
+                                   "memory outside_view must be true or false"),
 }
 
 
