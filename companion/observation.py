@@ -17,7 +17,7 @@ import dataclasses
 
 import numpy as np
 
-from companion.frames import ned_to_frd
+from companion.frames import frd_to_ned, ned_to_frd
 from companion.spec import (MAX_INVALID_DEPTH_FRACTION, MEMORY_AZIMUTH_SECTORS, MEMORY_ELEVATION_EDGES_DEG, STATE_DIM,
                             CameraSpec, MemorySpec)
 
@@ -344,13 +344,7 @@ class RememberedDepth:
         pooled = min_pool_depth(np.asarray(frame, dtype=np.float32).reshape(len(rows), cam.height, cam.width),
                                 self._pooled.height, self._pooled.width, cam.max_range_m)
         z = pooled.reshape(len(rows), -1, 1)
-        frd = z * self._ray_frd  # [k, P, 3]
-        cy, sy = np.cos(yaw_rad)[:, None], np.sin(yaw_rad)[:, None]
-        points = np.empty_like(frd)
-        points[..., 0] = frd[..., 0] * cy - frd[..., 1] * sy
-        points[..., 1] = frd[..., 0] * sy + frd[..., 1] * cy
-        points[..., 2] = frd[..., 2]
-        points += np.asarray(pos_ned, dtype=np.float32)[:, None, :]
+        points = frd_to_ned(z * self._ray_frd, np.asarray(yaw_rad)[:, None]) + np.asarray(pos_ned)[:, None, :]
         points[z[..., 0] >= cam.max_range_m] = np.nan  # max_range_m: no return
         self.points_ned[rows, self._head[rows]] = points
         keep = self._pushes[rows] % self.memory.every_steps == 0  # the first push of a flight stays, then every n-th
@@ -373,14 +367,12 @@ class RememberedDepth:
         out = np.full((k, self.memory.num_sectors), limit, dtype=np.float32)
         if len(row) == 0:
             return out
-        d_ned, dist = rel[row, col], distance[row, col]
-        cy, sy = np.cos(yaw_rad)[row], np.sin(yaw_rad)[row]
-        fwd = cy * d_ned[:, 0] + sy * d_ned[:, 1]
-        right = -sy * d_ned[:, 0] + cy * d_ned[:, 1]
+        d_frd, dist = ned_to_frd(rel[row, col], np.asarray(yaw_rad)[row]), distance[row, col]
         if self.memory.outside_view:  # drop what the camera looks at now: the image shows it (or its absence)
-            keep = ~self._in_view(fwd, right, d_ned[:, 2])
-            row, d_ned, dist, fwd, right = row[keep], d_ned[keep], dist[keep], fwd[keep], right[keep]
-        sin_up = -d_ned[:, 2] / np.maximum(dist, 1e-6)
+            keep = ~self._in_view(d_frd)
+            row, d_frd, dist = row[keep], d_frd[keep], dist[keep]
+        fwd, right = d_frd[:, 0], d_frd[:, 1]
+        sin_up = -d_frd[:, 2] / np.maximum(dist, 1e-6)
         band = np.searchsorted(self._sin_band_edges, sin_up)
         count = self._band_count[band]
         azimuth = np.arctan2(right, fwd)  # rad, positive right
@@ -389,12 +381,11 @@ class RememberedDepth:
         np.minimum.at(flat, row * self.memory.num_sectors + self._band_offset[band] + sector, dist)
         return out
 
-    def _in_view(self, fwd: np.ndarray, right: np.ndarray, down: np.ndarray) -> np.ndarray:
-        """Whether heading-frame offsets lie inside the camera's field of view (its mount pitch included)."""
+    def _in_view(self, d_frd: np.ndarray) -> np.ndarray:
+        """Whether heading-frame offsets [n, 3] lie inside the camera's field of view (its mount pitch included)."""
         cp, sp = self._mount_cos_sin
-        along = fwd * cp - down * sp  # the optical axis
-        below = fwd * sp + down * cp  # the image's down direction
+        along = d_frd[:, 0] * cp - d_frd[:, 2] * sp  # along the optical axis
+        below = d_frd[:, 0] * sp + d_frd[:, 2] * cp  # towards the image's bottom
         cam = self.camera
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return ((along > 0) & (np.abs(right) <= along * cam.tan_half_hfov)
-                    & (np.abs(below) <= along * cam.tan_half_vfov))
+        return ((along > 0) & (np.abs(d_frd[:, 1]) <= along * cam.tan_half_hfov)
+                & (np.abs(below) <= along * cam.tan_half_vfov))
