@@ -1,8 +1,8 @@
 """Running a policy file in ONNX form with onnxruntime (``companion --model policy.onnx``).
 
 ``policy.onnx`` is the same policy as ``policy.pt`` (docs/policy_file.md): inputs ``depth``
-float32 [B, frames, H, W] (planar metres, oldest first) and ``state`` float32 [B, 6], output
-``action`` float32 [B, 3] in physical units, and the same ``policy.json`` metadata, stored in
+float32 [B, frames, H, W] (planar metres, oldest first) and ``state`` float32 [B, 6] (longer with
+remembered depth), output ``action`` float32 [B, 3] in physical units, and the same ``policy.json`` metadata, stored in
 the model's ``metadata_props`` under the key ``policy.json``. onnxruntime runs it without
 torch on the companion computers people fly (a Raspberry Pi, a Jetson with the CUDA and
 TensorRT execution providers). :func:`companion.policy.load_policy` dispatches here for a

@@ -5,7 +5,8 @@ metadata as the extra file ``policy.json``. Its ``forward(depth, state)`` takes
 
 * ``depth``: float32 [B, frames, H, W], planar depth in metres, oldest frame first, pixels
   with no return set to ``max_range_m`` (exactly what :mod:`companion.observation` builds);
-* ``state``: float32 [B, 6] laid out as ``metadata["state_names"]``;
+* ``state``: float32 [B, 6] laid out as ``metadata["state_names"]`` (longer with the optional
+  ``memory``: the remembered sector ranges follow, :class:`companion.spec.MemorySpec`);
 
 and returns float32 [B, 3] deterministic actions in physical units, already inside the
 action bounds. Normalisation happens inside the module, so callers pass raw metres.

@@ -89,7 +89,7 @@ def export_policy(agent, path: str | Path, control_period_s: float, provenance: 
 def export_onnx(torchscript_path: str | Path, onnx_path: str | Path) -> float:
     """Convert a TorchScript policy file to ONNX; return the largest action difference on test observations.
 
-    The graph has inputs ``depth`` [B, frames, H, W] and ``state`` [B, 6] and output ``action``
+    The graph has inputs ``depth`` [B, frames, H, W] and ``state`` [B, 6] (longer with remembered depth) and output ``action``
     [B, 3] (B dynamic), and carries the TorchScript file's ``policy.json`` unchanged in its
     ``metadata_props``. Raises :class:`PolicyFileError` if the source is not a valid policy
     or the two formats disagree by more than :data:`ONNX_TOLERANCE`.

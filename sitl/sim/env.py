@@ -7,7 +7,8 @@ evaluation, the MAVLink vehicle). Arrays are flat over all UAVs of all worlds,
 Per step and per UAV (paper III.B):
 
 * observation: ``depth`` float32 [M, 3, H, W] (planar metres, oldest frame first) and
-  ``state`` float32 [M, 6] (:data:`companion.spec.STATE_NAMES`), built with
+  ``state`` float32 [M, 6] (:data:`companion.spec.STATE_NAMES`; then the remembered sector ranges
+  with ``SimConfig.memory``), built with
   :mod:`companion.observation`, the code the onboard companion runs;
 * action: float32 [M, 3] ``(vel_fwd_m_s, vel_down_m_s, yaw_rate_rad_s)``; non-finite
   actions raise, out-of-bounds ones are clipped to the bounds;
