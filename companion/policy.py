@@ -380,12 +380,13 @@ def _check_memory(memory: object, path: str) -> MemorySpec | None:
     names = [f.name for f in dataclasses.fields(MemorySpec)]
     _require(sorted(memory) == sorted(names), path,
              f"memory must have exactly the settings {names}, file says {sorted(memory)!r:.100}")
-    try:
-        return MemorySpec(steps=_integer(memory["steps"], path, "memory steps", 1, MEMORY_MAX_STEPS),
-                          every_steps=_integer(memory["every_steps"], path, "memory every_steps", 1, MEMORY_MAX_STEPS),
-                          range_m=_finite_number(memory["range_m"], path, "memory range_m"),
-                          pool=_integer(memory["pool"], path, "memory pool", 1, 16),
-                          outside_view=_boolean(memory["outside_view"], path, "memory outside_view"))
+    values = dict(steps=_integer(memory["steps"], path, "memory steps", 1, MEMORY_MAX_STEPS),
+                  every_steps=_integer(memory["every_steps"], path, "memory every_steps", 1, MEMORY_MAX_STEPS),
+                  range_m=_finite_number(memory["range_m"], path, "memory range_m"),
+                  pool=_integer(memory["pool"], path, "memory pool", 1, 16),
+                  outside_view=_boolean(memory["outside_view"], path, "memory outside_view"))
+    try:  # each value has its type; the spec checks how they go together
+        return MemorySpec(**values)
     except ValueError as err:
         raise PolicyFileError(f"{path}: {err}") from None
 
