@@ -311,7 +311,6 @@ def _fly(args: argparse.Namespace, log) -> int:
         return int(code)
 
     # 1. The model: the contract is checked before anything else is touched.
-    import numpy as np
     import torch
 
     torch.set_num_threads(1)  # one inference thread: predictable latency on a small computer

@@ -73,6 +73,7 @@ from companion.spec import (
     CameraSpec,
     MemorySpec,
     TaskSpec,
+    state_dim_for,
     state_names_for,
 )
 
@@ -138,7 +139,7 @@ def save_policy(module, metadata: dict, path: str | Path) -> None:
     camera, _, _, _, memory = _check_metadata(metadata, str(path))
     # a loaded file saved again is unwrapped first: its check follows the metadata written now
     module = ShapeCheckedPolicy(unwrap_checked(module), camera.frames, camera.height, camera.width,
-                                len(state_names_for(memory)))
+                                state_dim_for(memory))
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     with _QuietJitDeprecation():
         scripted = module if isinstance(module, torch.jit.ScriptModule) else torch.jit.script(module)
@@ -180,7 +181,7 @@ class LoadedPolicy:
     @property
     def state_dim(self) -> int:
         """Entries of the state this policy takes (6, plus the remembered sector ranges)."""
-        return len(state_names_for(self.memory))
+        return state_dim_for(self.memory)
 
     def blank_observation(self) -> tuple[np.ndarray, np.ndarray]:
         """``(depth [1, frames, H, W], state [1, state_dim])`` of an empty world with the goal 10 m ahead
@@ -450,7 +451,7 @@ def load_policy(path: str | Path, *, check_forward: bool = True,
     except json.JSONDecodeError as err:
         raise PolicyFileError(f"{path}: {METADATA_FILE} is not valid JSON ({err})") from err
     camera, action, period_s, task, memory = _check_metadata(meta, path)
-    state_dim = len(state_names_for(memory))
+    state_dim = state_dim_for(memory)
     if Path(path).suffix.lower() == ".onnx":
         problem = shape_problem(module, camera.frames, camera.height, camera.width, state_dim)
         _require(problem is None, path, str(problem))

@@ -351,6 +351,11 @@ def state_names_for(memory: MemorySpec | None) -> tuple[str, ...]:
     return STATE_NAMES + (memory.state_names() if memory is not None else ())
 
 
+def state_dim_for(memory: MemorySpec | None) -> int:
+    """Entries of the state of a policy with (or without) remembered depth: 6, or 6 + its sectors."""
+    return STATE_DIM + (memory.num_sectors if memory is not None else 0)
+
+
 def preset_for_camera(camera: CameraSpec) -> str:
     """The name of the camera preset whose field of view and range ``camera`` has (resolution, stack and
     mount pitch aside): which sensor ``sitl.vehicle --camera`` must carry for a policy. Raises

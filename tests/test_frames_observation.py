@@ -18,7 +18,8 @@ from companion.observation import (
     min_pool_depth,
     validate_depth_frame,
 )
-from companion.spec import DEFAULT_ACTION_SPEC, REALSENSE_D435, STATE_NAMES, CameraSpec, MemorySpec, state_names_for
+from companion.spec import (DEFAULT_ACTION_SPEC, REALSENSE_D435, STATE_NAMES, CameraSpec, MemorySpec, state_dim_for,
+                            state_names_for)
 from sitl.sim.dynamics import KinematicDynamics
 
 
@@ -280,6 +281,7 @@ def test_memory_spec_names_its_state_and_refuses_bad_settings():
     memory = MemorySpec()
     assert memory.slots == 5 and len(memory.state_names()) == memory.num_sectors == 26
     assert state_names_for(None) == STATE_NAMES and state_names_for(memory)[len(STATE_NAMES):] == memory.state_names()
+    assert state_dim_for(None) == 6 and state_dim_for(memory) == len(state_names_for(memory)) == 32
     for bad in ({"steps": 0}, {"every_steps": 11}, {"range_m": 0.0}, {"pool": 0}, {"outside_view": 1}):
         with pytest.raises(ValueError, match="memory"):
             MemorySpec(**bad)

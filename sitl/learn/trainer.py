@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from companion.governor import GOVERNOR_PRESETS, GovernorSpec
-from companion.spec import DEFAULT_ACTION_SPEC, TaskSpec, state_names_for
+from companion.spec import DEFAULT_ACTION_SPEC, TaskSpec, state_dim_for
 from sitl.learn.agent import AgentConfig, SacAeAgent
 from sitl.learn.buffer import FrameReplayBuffer
 from sitl.learn.config import TrainConfig, evaluation_scenarios, make_sim_config
@@ -219,7 +219,8 @@ def make_buffer(cfg: TrainConfig, env: SwarmEnv, privileged_dim: int = 0) -> Fra
     """The replay buffer for ``env``'s UAVs and camera (``privileged_dim``: an asymmetric critic's extra input)."""
     cam = env.config.camera
     return FrameReplayBuffer(cfg.replay_capacity, env.num_agents, cam.frames, cam.height, cam.width,
-                             len(state_names_for(env.config.memory)), DEFAULT_ACTION_SPEC.dim, seed=cfg.seed, privileged_dim=privileged_dim,
+                             state_dim_for(env.config.memory), DEFAULT_ACTION_SPEC.dim, seed=cfg.seed,
+                             privileged_dim=privileged_dim,
                              frame_ages=cam.stack_ages, precollision_steps=cfg.precollision_steps)
 
 

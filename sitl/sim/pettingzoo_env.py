@@ -15,7 +15,7 @@ import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
-from companion.spec import state_names_for
+from companion.spec import state_dim_for
 from sitl.sim.config import SimConfig
 from sitl.sim.env import SwarmEnv
 from sitl.sim.metrics import Outcome
@@ -34,7 +34,7 @@ class SwarmParallelEnv(ParallelEnv):
         cam = config.camera
         self._observation_space = spaces.Dict({
             "depth": spaces.Box(0.0, cam.max_range_m, (cam.frames, cam.height, cam.width), np.float32),
-            "state": spaces.Box(-np.inf, np.inf, (len(state_names_for(config.memory)),), np.float32),
+            "state": spaces.Box(-np.inf, np.inf, (state_dim_for(config.memory),), np.float32),
         })
         spec = self.core.action_spec
         self._action_space = spaces.Box(spec.low_array(), spec.high_array(), dtype=np.float32)
