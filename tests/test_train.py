@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import signal
 import subprocess
@@ -529,6 +530,27 @@ def test_a_camera_limited_teacher_labels_the_other_worlds_with_what_each_uav_see
     assert np.abs(labels).max() <= 1.0 and labels[:, 0].max() > 0  # unit actions; ORCA flies forward
     with pytest.raises(ValueError, match="teacher_camera_limited needs a teacher"):
         resolve_configs({"teacher_camera_limited": True}, {})
+
+
+def test_the_teachers_look_ahead_and_margin_are_options_recorded_in_the_provenance(tmp_path):
+    """``teacher_time_horizon_s`` / ``teacher_radius_margin_m``: the ORCA that labels the worlds other than circles
+    has them (its labels are that ORCA's), policy.json's provenance names them, and a bad value is refused."""
+    from sitl.eval.orca import OrcaController, OrcaParams
+    from sitl.learn.config import resolve_configs
+
+    trainer = _small_teacher_run(tmp_path, circle_fraction=0.0, teacher_time_horizon_s=5.0,
+                                 teacher_radius_margin_m=0.3)
+    params = OrcaParams(time_horizon_s=5.0, radius_margin_m=0.3)
+    assert trainer.teacher.params == params and trainer.teacher.see_obstacles
+    same = OrcaController.for_env(trainer.env, params, see_obstacles=True)  # stateless: the same labels now
+    np.testing.assert_allclose(trainer.teacher_commands(), same.act_env(trainer.env))
+    provenance = json.loads((trainer.finish().parent / "final_eval.json").read_text())
+    assert provenance["teacher"]["orca"]["time_horizon_s"] == 5.0
+    assert provenance["teacher"]["orca"]["radius_margin_m"] == 0.3
+    for field, bad in (("teacher_time_horizon_s", 0.1), ("teacher_time_horizon_s", math.nan),
+                       ("teacher_radius_margin_m", -0.1)):
+        with pytest.raises(ValueError, match=f"{field} must be in"):
+            resolve_configs({field: bad}, {})
 
 
 def test_validations_fly_their_own_time_limit_and_record_it(tmp_path):

@@ -202,6 +202,11 @@ class TrainConfig:
                                           "circles are labelled by ORCA that knows only the UAVs in each UAV's camera "
                                           "view and still sees the obstacles (the camera limited ORCA reference, plus obstacles) "
                                           "instead of privileged ORCA that knows every UAV")
+    teacher_time_horizon_s: float = _param(2.5, "with a teacher: the look-ahead of the ORCA that labels the worlds other "
+                                           "than circles, in seconds (sitl.eval.orca.OrcaParams.time_horizon_s; a longer "
+                                           "one reacts earlier, while a neighbour is farther away and more often in view)")
+    teacher_radius_margin_m: float = _param(0.2, "with a teacher: the margin over the collision radius R that this ORCA "
+                                            "keeps, in metres (sitl.eval.orca.OrcaParams.radius_margin_m)")
     teacher_bc_updates: int = _param(0, "the teacher's weight falls linearly to 0 over this many updates, counted "
                                         "from the first stage of a recipe (0: it stays constant)")
     dagger_beta_updates: int = _param(4_000, "distill method: the share of UAVs flying the teacher's command instead "
@@ -300,6 +305,10 @@ class TrainConfig:
                              f"{', '.join(GOVERNOR_PRESETS)}")
         if self.teacher_camera_limited and self.method != "distill" and self.teacher_bc_weight <= 0:
             raise ValueError("teacher_camera_limited needs a teacher: the distill method or teacher_bc_weight > 0")
+        if not (0.5 <= self.teacher_time_horizon_s <= 20.0):
+            raise ValueError(f"teacher_time_horizon_s must be in [0.5, 20] s, got {self.teacher_time_horizon_s}")
+        if not (0.0 <= self.teacher_radius_margin_m <= 3.0):
+            raise ValueError(f"teacher_radius_margin_m must be in [0, 3] m, got {self.teacher_radius_margin_m}")
         if self.method == "distill" and self.teacher_bc_weight > 0:
             raise ValueError("teacher_bc_weight is SAC's behaviour-cloning term; the distill method is all teacher already")
         if not 0.0 < self.checkpoint_every_s < math.inf:

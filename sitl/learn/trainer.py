@@ -268,10 +268,12 @@ class Trainer:
         self.circle_teacher = None
         self.distill = agent_cfg.method == "distill"
         if cfg.teacher_bc_weight > 0 or self.distill:
-            from sitl.eval.orca import RIGHT_HAND_PARAMS, OrcaController
+            from sitl.eval.orca import RIGHT_HAND_PARAMS, OrcaController, OrcaParams
 
+            params = OrcaParams(time_horizon_s=cfg.teacher_time_horizon_s, radius_margin_m=cfg.teacher_radius_margin_m)
             try:
-                self.teacher = OrcaController.for_env(env, camera_limited=cfg.teacher_camera_limited, see_obstacles=True)
+                self.teacher = OrcaController.for_env(env, params, camera_limited=cfg.teacher_camera_limited,
+                                                      see_obstacles=True)
                 if cfg.circle_teacher_right:
                     self.circle_teacher = OrcaController.for_env(env, RIGHT_HAND_PARAMS, camera_limited=True)
             except ImportError as err:  # the binding has wheels for Linux x86_64 only
@@ -685,6 +687,10 @@ class Trainer:
         if self.distill:  # not reinforcement learning: a student of privileged ORCA
             provenance["teacher"] = {"kind": f"orca ({knows}, sees obstacles)", "dagger_beta_updates":
                                      cfg.dagger_beta_updates, "module": "sitl.eval.orca"}
+        from sitl.eval.orca import OrcaParams
+
+        if self.teacher is not None and self.teacher.params != OrcaParams():  # not the ORCA references' settings
+            provenance["teacher"]["orca"] = asdict(self.teacher.params)
         if self.circle_teacher is not None:  # circle worlds: the view-limited right-of-way ORCA
             provenance["teacher"]["circle_worlds"] = {"kind": "orca-fov-right (knows the UAVs in view, keeps right)",
                                                       "orca": asdict(self.circle_teacher.params)}
