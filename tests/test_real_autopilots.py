@@ -199,3 +199,23 @@ def test_the_command_line_refuses_a_missing_binary_in_one_line(tmp_path):
     assert done.returncode == 1
     assert done.stderr.strip().splitlines() == [f"sitl.real_autopilots: error: $SWARMNAV_PX4={tmp_path / 'nothing'} "
                                                 "is not an executable file"]
+
+
+def test_the_command_line_refuses_a_model_the_companions_would_refuse_before_starting_anything(tmp_path):
+    """``--model``: a file the companion could not fly is refused in one line, exit 2, before any autopilot
+    starts (no run folder is made); the bundled file is the default."""
+    import subprocess
+    import sys
+
+    from sitl.realtime.autopilot_sitl import DEFAULT_POLICY
+
+    bad = tmp_path / "bad.pt"
+    bad.write_text("not a policy")
+    for what in ("circle", "stop"):
+        done = subprocess.run([sys.executable, "-m", "sitl.real_autopilots", what, "--autopilot", "px4", "--out",
+                               str(tmp_path / "run"), "--model", str(bad)], capture_output=True, text=True, timeout=60)
+        assert done.returncode == 2
+        [line] = done.stderr.strip().splitlines()
+        assert "--model: cannot use the model:" in line and str(bad) in line
+    assert not (tmp_path / "run").exists()
+    assert DEFAULT_POLICY.name == "policy.pt" and DEFAULT_POLICY.parent.name == "models" and DEFAULT_POLICY.is_file()

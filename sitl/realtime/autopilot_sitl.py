@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from companion.flight_modes import (ARDUCOPTER_MODE_BY_NAME, PX4_MODE_BY_NAME)
-from companion.spec import DEFAULT_TASK_SPEC
+from companion.spec import CAMERA_PRESETS, DEFAULT_TASK_SPEC
 from sitl.realtime.depth_bridge import ned_offset_m, shift_global
 from sitl.realtime.mavlink_swarm import JsonLinesTail, ProcessGroup, _die_with_parent, companion_command
 
@@ -155,11 +155,14 @@ class RealSwarm:
         home: latitude, longitude deg, altitude m of the point ``spawns_ne`` are relative to.
         params: autopilot parameters set at boot (ArduPilot: a defaults file; PX4: ``PX4_PARAM_<NAME>``).
         camera_hz: the world's camera rate.
+        policy: the policy file every companion flies (default: the bundled ``models/policy.pt``).
+        camera: the depth sensor the world gives every vehicle (a ``companion.spec.CAMERA_PRESETS`` name;
+            default: the world's own, the D435); it must cover the policy's view, or the companions refuse it.
     """
 
     def __init__(self, kind: str, binary: Path, spawns_ne: np.ndarray, out: Path,
                  home: tuple[float, float, float] | None = None, params: dict[str, float] | None = None,
-                 camera_hz: float = 30.0) -> None:
+                 camera_hz: float = 30.0, policy: Path = DEFAULT_POLICY, camera: str | None = None) -> None:
         if kind not in KINDS:
             raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
         self.kind, self.binary, self.out = kind, Path(binary), Path(out)
@@ -168,6 +171,7 @@ class RealSwarm:
         self.home = home or DEFAULT_HOME[kind]
         self.params = dict(params or {})
         self.camera_hz = camera_hz
+        self.policy, self.camera = Path(policy), camera
         self.out.mkdir(parents=True, exist_ok=True)
         self.procs = Children()
         self.offsets: np.ndarray | None = None  # each vehicle's local origin in the world frame, from the world
@@ -257,7 +261,8 @@ class RealSwarm:
             self.add_px4_world_links()
         argv = [sys.executable, "-m", "sitl.world", *self.world_source(), "--log", str(self.world_log),
                 "--depth-port", str(DEPTH_PORT_BASE),
-                "--trace", str(self.trace_path), "--camera-hz", f"{self.camera_hz:g}", *extra]
+                "--trace", str(self.trace_path), "--camera-hz", f"{self.camera_hz:g}",
+                *(["--camera", self.camera] if self.camera else []), *extra]
         self.procs.start("world", argv, self.out / "world.out")
 
     def wait_tracking(self, timeout_s: float, origin_wait_s: float = 12.0) -> np.ndarray:
@@ -302,9 +307,9 @@ class RealSwarm:
         assert self.offsets is not None, "wait_tracking first"
         return np.asarray(goal_world_ned, dtype=np.float64) - self.offsets[i]
 
-    def start_companion(self, i: int, *extra: str, takeoff_m: float = 8.0, policy: Path = DEFAULT_POLICY) -> None:
+    def start_companion(self, i: int, *extra: str, takeoff_m: float = 8.0, policy: Path | None = None) -> None:
         argv = [*companion_command(), "--connect", self.companion_connection(i), "--camera",
-                f"sitl:{DEPTH_PORT_BASE + i}:{i}", "--model", str(policy), "--arm", "--takeoff", f"{takeoff_m:g}",
+                f"sitl:{DEPTH_PORT_BASE + i}:{i}", "--model", str(policy or self.policy), "--arm", "--takeoff", f"{takeoff_m:g}",
                 "--heartbeat-timeout", "60", "--log", str(self.companion_log(i)), *extra]
         self.procs.start(f"companion_{i}", argv, self.out / f"companion_{i}.out")
 
@@ -423,7 +428,8 @@ def pairwise_min_distance(pos: np.ndarray) -> tuple[float, tuple[int, int]]:
 
 def fly_circle(kind: str, binary: Path, n: int, out: Path, radius_m: float = 12.0, altitude_m: float = 8.0,
                rotation_deg: float = 0.0, time_limit_s: float = 60.0, ready_timeout_s: float = 240.0,
-               settle_s: float = 10.0, params: dict[str, float] | None = None, status=print) -> dict:
+               settle_s: float = 10.0, params: dict[str, float] | None = None, status=print,
+               policy: Path = DEFAULT_POLICY, camera: str | None = None) -> dict:
     """A circle of ``n`` vehicles flying to their antipodes together; the measured results.
 
     Arrival is the first time within the task's arrival radius of the goal; the settled error is
@@ -434,7 +440,7 @@ def fly_circle(kind: str, binary: Path, n: int, out: Path, radius_m: float = 12.
     spawns_rel = spawns - spawns[0]  # the world frame is vehicle 0's local frame
     goals = np.concatenate([goals_ne - spawns[0], np.full((n, 1), -altitude_m)], axis=1)
     started = time.monotonic()
-    with RealSwarm(kind, binary, spawns_rel, out, params=params) as swarm:
+    with RealSwarm(kind, binary, spawns_rel, out, params=params, policy=policy, camera=camera) as swarm:
         swarm.start_autopilots()
         swarm.start_world()
         offsets = swarm.wait_tracking(ready_timeout_s)
@@ -467,6 +473,7 @@ def fly_circle(kind: str, binary: Path, n: int, out: Path, radius_m: float = 12.
         world_status = [r for r in JsonLinesTail(swarm.world_log).read() if r.get("event") == "world_status"]
     summary = _circle_summary(kind, n, radius_m, altitude_m, rotation_deg, tr, goals, offsets, arrived_t, t0,
                               settle_s, ready_s, world_status)
+    summary |= {"policy": str(policy), "camera": camera or "the world's default"}
     write_summary(out, summary)
     return summary
 
@@ -497,11 +504,12 @@ def _circle_summary(kind, n, radius_m, altitude_m, rotation_deg, tr: PoseTrace, 
 
 def fly_and_stop(kind: str, binary: Path, out: Path, sig: int, distance_m: float = 30.0, altitude_m: float = 8.0,
                  trigger_speed_mps: float = 1.5, watch_s: float = 12.0, ready_timeout_s: float = 240.0,
-                 params: dict[str, float] | None = None, status=print) -> dict:
+                 params: dict[str, float] | None = None, status=print, policy: Path = DEFAULT_POLICY,
+                 camera: str | None = None) -> dict:
     """One vehicle flies towards a goal ``distance_m`` north; once faster than ``trigger_speed_mps``
     its companion gets ``sig``. Measures how far and how long the vehicle went on, and its mode after."""
     goal = np.array([distance_m, 0.0, -altitude_m])
-    with RealSwarm(kind, binary, np.zeros((1, 2)), out, params=params) as swarm:
+    with RealSwarm(kind, binary, np.zeros((1, 2)), out, params=params, policy=policy, camera=camera) as swarm:
         swarm.start_autopilots()
         swarm.start_world()
         swarm.wait_tracking(ready_timeout_s)
@@ -535,7 +543,7 @@ def fly_and_stop(kind: str, binary: Path, out: Path, sig: int, distance_m: float
         "moved_after_stop_m": round(float(np.nanmax(drift)), 2), "still_moving_at_end": bool(speed[-1] > STOPPED_MPS),
         "climb_m": round(float(-(np.nanmin(tr.pos[:, 0, 2]) - pos_sig[2])), 2),
         "modes_after": list(dict.fromkeys(m[0] for m in tr.mode)), "companion_exit": exit_code,
-        "params": params or {}, "watch_s": watch_s,
+        "params": params or {}, "watch_s": watch_s, "policy": str(policy), "camera": camera or "the world's default",
     }
     write_summary(out, summary)
     return summary
@@ -561,6 +569,19 @@ def _param(text: str) -> tuple[str, float]:
     return name.strip().upper(), number
 
 
+def _policy_file(text: str) -> Path:
+    """A policy file the companions can fly (checked here, so that a bad one fails before anything starts)."""
+    import argparse
+
+    from companion.policy import PolicyFileError, load_policy
+
+    try:
+        load_policy(text)
+    except PolicyFileError as err:  # what the companion would refuse it for, in one line
+        raise argparse.ArgumentTypeError(f"cannot use the model: {err}") from None
+    return Path(text)
+
+
 def main(argv: list[str] | None = None) -> int:
     """``python -m sitl.real_autopilots circle|stop``: run and print the measured results as JSON."""
     import argparse
@@ -580,6 +601,11 @@ def main(argv: list[str] | None = None) -> int:
                        help="an autopilot parameter set before flight, repeatable (e.g. GUID_TIMEOUT=0.5)")
         p.add_argument("--ready-timeout", type=positive_float, default=240.0, metavar="S",
                        help="start-up limit: boot, EKF position, arming and takeoff (default 240 s)")
+        p.add_argument("--model", type=_policy_file, default=DEFAULT_POLICY, metavar="PATH",
+                       help="the policy file every companion flies (default: the bundled models/policy.pt)")
+        p.add_argument("--camera", choices=sorted(CAMERA_PRESETS), default=None,
+                       help="the depth sensor the world gives every vehicle (default: sitl.world's, realsense_d435); "
+                            "it must cover the policy's view")
     circle.add_argument("--n", type=int_range(2, 16), default=8)
     circle.add_argument("--radius", type=positive_float, default=12.0, help="circle radius in metres (default 12)")
     circle.add_argument("--rotation", type=finite_float, default=0.0, metavar="DEG",
@@ -602,11 +628,12 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.what == "circle":
             summary = fly_circle(args.autopilot, binary, args.n, args.out, args.radius, args.altitude, args.rotation,
-                                 args.time_limit, args.ready_timeout, params=params, status=status)
+                                 args.time_limit, args.ready_timeout, params=params, status=status,
+                                 policy=args.model, camera=args.camera)
         else:
             summary = fly_and_stop(args.autopilot, binary, args.out, getattr(signal, f"SIG{args.signal}"),
                                    args.distance, args.altitude, ready_timeout_s=args.ready_timeout, params=params,
-                                   status=status)
+                                   status=status, policy=args.model, camera=args.camera)
     except SitlError as err:
         print(f"sitl.real_autopilots: error: {err}", file=sys.stderr)
         return 1
