@@ -17,10 +17,7 @@ arming                   (``--arm``) arming the vehicle
 switching_mode           (``--arm``) asking for OFFBOARD / GUIDED
 taking_off               (``--arm --takeoff``) PX4: climbing in OFFBOARD with velocity
                          setpoints; ArduPilot: NAV_TAKEOFF in GUIDED, nothing streamed
-flying_to_goal           the policy flies; every step may become a hold (failsafes below). After
-                         ``--takeoff``, until the first goal: a position target at the take-off
-                         altitude where the climb ended (a zero velocity let PX4 SIH drift on by
-                         up to 1.9 m, so a swarm started its crossing up to 2.7 m apart vertically)
+flying_to_goal           the policy flies; every step may become a hold (failsafes below)
 holding_at_goal          within 0.5 m of the goal: a position target at the goal (LOCAL_NED
                          position + yaw), so the vehicle settles on it instead of drifting on
                          after a zero-velocity stop
@@ -224,8 +221,6 @@ class Companion:
         self._last_stacked_arrival_s = -math.inf  # arrival time of the newest frame in the stack
         self._stack_seqs: list[int] = []  # seq numbers of the stack's frame history, oldest first (logged)
         self._hold_point: tuple[np.ndarray, float] | None = None  # (goal NED, yaw) held at the goal
-        #: (NED, yaw) held after ``--takeoff`` until the first goal: the take-off altitude where the climb ended
-        self._takeoff_point: tuple[np.ndarray, float] | None = None
         self._last_hold_reason: str | None = None
         self._last_mode: tuple[int, bool] | None = None
         self._was_in_companion_mode_at_start: bool | None = None
@@ -493,7 +488,7 @@ class Companion:
             inference_ms=None if info.get("inference_s") is None else info["inference_s"] * 1000.0,
             tick_late_ms=None if late is None else late * 1000.0, period_ms=None if period is None else period * 1000.0,
             extra=extra, stacked=info.get("stacked"), stack_seqs=info.get("stack_seqs"),
-            hold_point_ned=None if command is None or self._held_point() is None else self._held_point()[0],
+            hold_point_ned=None if command is None or not self._holding_point() else self._hold_point[0],
         )
         if self.recorder is not None and frame is not None and info.get("state") is not None:
             try:
@@ -508,19 +503,12 @@ class Companion:
         if now - self._last_summary_s >= 10.0:
             self._write_summary(final=False)
 
-    def _held_point(self) -> tuple[np.ndarray, float] | None:
-        """The point (NED, yaw) held with a position target now, else None (velocity setpoints): the goal once
-        there, or the take-off point while a vehicle that took off waits for its first goal."""
-        if self.phase is FlightPhase.HOLDING_AT_GOAL:
-            return self._hold_point
-        if self.phase is FlightPhase.FLYING_TO_GOAL and self.goal_ned is None:
-            return self._takeoff_point
-        return None
+    def _holding_point(self) -> bool:
+        return self.phase is FlightPhase.HOLDING_AT_GOAL and self._hold_point is not None
 
     def _send(self, command: np.ndarray) -> float:
-        point = self._held_point()
-        if point is not None:  # hold the point, not a zero velocity that drifts on
-            self.link.send_position_target(*point)
+        if self._holding_point():  # at the goal: hold the point, not a zero velocity that drifts on
+            self.link.send_position_target(*self._hold_point)
         else:
             self.link.send_velocity_setpoint(command[0], command[1], command[2])
         sent_s = time.monotonic()
@@ -700,7 +688,6 @@ class Companion:
                 return None
             if odom is not None and -odom.pos_ned[2] >= target - 0.2 and self._pending is not None and self._pending.done:
                 self.engaged = True
-                self._takeoff_point = self._point_at_altitude(odom, target)
                 self._next_in_sequence(now, f"reached {-odom.pos_ned[2]:.1f} m")
             return None  # ArduPilot's guided takeoff: a velocity setpoint would cancel it
         problem = self._input_problem(now, need_depth=False)
@@ -709,24 +696,17 @@ class Companion:
             return np.zeros(3)
         altitude_error_m = target - (-odom.pos_ned[2])
         if abs(altitude_error_m) < 0.2:
-            self._takeoff_point = self._point_at_altitude(odom, target)
             self._next_in_sequence(now, f"reached {-odom.pos_ned[2]:.1f} m")
             return np.zeros(3)
         # Climb in OFFBOARD with the policy's own vertical bound (a P law on altitude).
         vel_down = float(np.clip(-1.0 * altitude_error_m, self.low[1], self.high[1]))
         return np.array([0.0, vel_down, 0.0])
 
-    @staticmethod
-    def _point_at_altitude(odom, altitude_m: float) -> tuple[np.ndarray, float]:
-        """Where the vehicle is, at ``altitude_m`` above the origin, with its heading (a position target)."""
-        point = np.array([odom.pos_ned[0], odom.pos_ned[1], -altitude_m], dtype=np.float64)
-        return point, float(odom.yaw_rad)
-
     def _phase_flying_to_goal(self, now: float, info: dict) -> np.ndarray | None:
         odom = self.link.odometry
         if self.goal_ned is None:
             info["hold"] = "no goal (send one with SET_POSITION_TARGET_LOCAL_NED to component 191)"
-            return self._hold(info, "position target at the take-off point" if self._takeoff_point else "zero velocity")
+            return self._hold(info)
         if odom is not None and self.link.odometry_age_s(now) <= self.stale_s:
             dist = float(np.linalg.norm(self.goal_ned - odom.pos_ned))
             info["dist_m"] = dist
@@ -810,11 +790,11 @@ class Companion:
         self._note_hold(None)
         return command
 
-    def _hold(self, info: dict, how: str = "zero velocity") -> np.ndarray:
-        self._note_hold(info.get("hold"), how)
+    def _hold(self, info: dict) -> np.ndarray:
+        self._note_hold(info.get("hold"))
         return np.zeros(3)
 
-    def _note_hold(self, reason: str | None, how: str = "zero velocity") -> None:
+    def _note_hold(self, reason: str | None) -> None:
         """Log failsafe holds when they start, change reason, and end (not every step)."""
         kind = None if reason is None else reason.split(" (")[0].split(":")[0]
         last = None if self._last_hold_reason is None else self._last_hold_reason.split(" (")[0].split(":")[0]
@@ -822,7 +802,7 @@ class Companion:
             if reason is None:
                 self._event("failsafe", "failsafe cleared: the policy flies again", cleared=True)
             else:
-                self._event("failsafe", f"HOLD ({how}): {reason}", level="warning", reason=reason)
+                self._event("failsafe", f"HOLD (zero velocity): {reason}", level="warning", reason=reason)
         self._last_hold_reason = reason
 
     def _arrive(self, now: float, dist: float, info: dict) -> np.ndarray | None:
@@ -963,8 +943,8 @@ class Companion:
         # sequence 1.35 m.
         settle = hb.kind is AutopilotKind.ARDUPILOT
         odom = self.link.odometry
-        if self._held_point() is not None:
-            point = self._held_point()
+        if self._holding_point():
+            point = self._hold_point
         elif (not settle and odom is not None and self.link.odometry_age_s(now) <= self.stale_s
               and self.phase is not FlightPhase.TAKING_OFF):
             point = (odom.pos_ned.copy(), float(odom.yaw_rad))
@@ -1006,8 +986,7 @@ class Companion:
                 else:
                     time.sleep(min(wait, 0.005))
 
-        what = ("zero velocity" if point is None else "a position hold at the goal"
-                if self.phase is FlightPhase.HOLDING_AT_GOAL else "a position hold")
+        what = "zero velocity" if point is None else "a position hold at the goal" if self._holding_point() else "a position hold"
         self._event("leaving", f"leaving: streaming {what} for {EXIT_HOLD_STREAM_S:g} s"
                     + (", then a position hold until settled" if in_control and settle else "")
                     + (f", then handing over to {HOLD_MODES[hb.kind]}" if in_control else ""),

@@ -18,6 +18,7 @@ from companion.governor import GOVERNOR_PRESETS, describe_presets
 from companion.spec import (CAMERA_PRESETS, DEFAULT_TASK_SPEC, MAX_FRAME_STRIDE, MEMORY_MAX_STEPS, CameraSpec,
                             check_frame_ages, memory_for_steps)
 from sitl.cli_args import MAX_THREADS
+from sitl.eval.orca import OrcaParams
 from sitl.learn.agent import METHODS, AgentConfig
 from sitl.sim.camera import EDGE_HOLE_MODELS, StereoNoise
 from sitl.sim.config import (CIRCLE_RADIUS_M, GEOMETRIES, LOW_FLOOR_BAND_M, OBSTACLE_SCENE_DENSITY,
@@ -202,10 +203,10 @@ class TrainConfig:
                                           "circles are labelled by ORCA that knows only the UAVs in each UAV's camera "
                                           "view and still sees the obstacles (the camera limited ORCA reference, plus obstacles) "
                                           "instead of privileged ORCA that knows every UAV")
-    teacher_time_horizon_s: float = _param(2.5, "with a teacher: the look-ahead of the ORCA that labels the worlds other "
+    teacher_time_horizon_s: float = _param(OrcaParams.time_horizon_s, "with a teacher: the look-ahead of the ORCA that labels the worlds other "
                                            "than circles, in seconds (sitl.eval.orca.OrcaParams.time_horizon_s; a longer "
                                            "one reacts earlier, while a neighbour is farther away and more often in view)")
-    teacher_radius_margin_m: float = _param(0.2, "with a teacher: the margin over the collision radius R that this ORCA "
+    teacher_radius_margin_m: float = _param(OrcaParams.radius_margin_m, "with a teacher: the margin over the collision radius R that this ORCA "
                                             "keeps, in metres (sitl.eval.orca.OrcaParams.radius_margin_m)")
     teacher_bc_updates: int = _param(0, "the teacher's weight falls linearly to 0 over this many updates, counted "
                                         "from the first stage of a recipe (0: it stays constant)")
