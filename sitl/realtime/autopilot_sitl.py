@@ -307,9 +307,9 @@ class RealSwarm:
         assert self.offsets is not None, "wait_tracking first"
         return np.asarray(goal_world_ned, dtype=np.float64) - self.offsets[i]
 
-    def start_companion(self, i: int, *extra: str, takeoff_m: float = 8.0, policy: Path | None = None) -> None:
+    def start_companion(self, i: int, *extra: str, takeoff_m: float = 8.0) -> None:
         argv = [*companion_command(), "--connect", self.companion_connection(i), "--camera",
-                f"sitl:{DEPTH_PORT_BASE + i}:{i}", "--model", str(policy or self.policy), "--arm", "--takeoff", f"{takeoff_m:g}",
+                f"sitl:{DEPTH_PORT_BASE + i}:{i}", "--model", str(self.policy), "--arm", "--takeoff", f"{takeoff_m:g}",
                 "--heartbeat-timeout", "60", "--log", str(self.companion_log(i)), *extra]
         self.procs.start(f"companion_{i}", argv, self.out / f"companion_{i}.out")
 
