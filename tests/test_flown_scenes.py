@@ -123,6 +123,41 @@ def test_flown_circle_draws_radius_and_altitude_per_episode():
     assert 2.0 <= min(alts) < 4.0 and 13.0 < max(alts) <= 15.0
 
 
+def test_circle_start_headings_goal_common_any_and_mixed():
+    """``goal`` faces each UAV's goal and draws nothing more (the paper's circle keeps its episodes); ``common``
+    gives the swarm one heading per episode, ``any`` each UAV its own, ``mixed`` one of the three per episode;
+    the layout itself is the same draw in every case."""
+    from sitl.sim.scenarios import _bearing_rad
+
+    draws = {h: [sample_circle(8, scenario_for("flown", "circle", circle_heading=h), np.random.default_rng(k))
+                 for k in range(60)] for h in ("goal", "common", "any", "mixed")}
+    for k, s in enumerate(draws["goal"]):
+        np.testing.assert_allclose(s.yaw_rad, _bearing_rad(s.start_ned, s.goal_ned))
+        for h in ("common", "any", "mixed"):
+            np.testing.assert_array_equal(draws[h][k].start_ned, s.start_ned)
+    common = np.array([s.yaw_rad for s in draws["common"]])
+    assert np.all(common == common[:, :1]) and np.ptp(common[:, 0]) > 5.0  # one per episode, spread over the circle
+    many = np.array([s.yaw_rad for s in draws["any"]])
+    assert np.all(np.ptp(many, axis=1) > 0.5) and many.min() < -2.5 and many.max() > 2.5
+    kinds = set()
+    for s in draws["mixed"]:
+        facing_goal = np.allclose(s.yaw_rad, _bearing_rad(s.start_ned, s.goal_ned))
+        kinds.add("goal" if facing_goal else "common" if np.all(s.yaw_rad == s.yaw_rad[0]) else "any")
+    assert kinds == {"goal", "common", "any"}
+    with pytest.raises(ValueError, match="unknown circle_heading 'north'"):
+        scenario_for("flown", "circle", circle_heading="north")
+
+
+def test_circle_heading_reaches_training_worlds_only():
+    from sitl.learn.config import TrainConfig, make_sim_config
+
+    cfg = TrainConfig(preset="flown-fast", geometry="flown", scenario="mixed", circle_heading="common")
+    assert make_sim_config(cfg, 1).scenario.circle_heading == "common"
+    assert make_sim_config(cfg, 1, scenario_name="circle").scenario.circle_heading == "goal"
+    with pytest.raises(ValueError, match="unknown circle_heading"):
+        TrainConfig(circle_heading="sideways")
+
+
 def test_obstacles_keep_clear_of_starts_and_goals():
     cfg = scenario_for("flown", "obstacles", density=OBSTACLE_SCENE_DENSITY)
     rng = np.random.default_rng(1)
@@ -234,14 +269,14 @@ def test_flown_protocol_writes_cells_table_and_plot_and_resumes(tmp_path, capsys
             "--batch", "1"]
     assert main(argv) == 0
     text = (out / "flown.md").read_text()
-    for cell in ("random-small", "random-medium", "random-large", "circle-n8", "obstacles"):
+    for cell in ("random-small", "random-medium", "random-large", "circle-n8", "circle-n8-common", "obstacles"):
         assert f"| {cell} | straight |" in text
     assert "below 3 m" in text and (out / "flown_success.png").stat().st_size > 1000
     data = json.loads((out / "flown.json").read_text())
     assert set(data["cells"]["obstacles"]["results"]["straight"]["by_goal_altitude"]) == {"below 3 m", "3-6 m",
                                                                                          "above 6 m"}
     assert main(argv) == 0
-    assert "0 computed, 5 reused" in capsys.readouterr().out
+    assert "0 computed, 6 reused" in capsys.readouterr().out
     assert main([*argv, "--cells", "obstacles,random-small"]) == 0  # a subset: only those cells, still reused
     printed = capsys.readouterr().out
     assert "0 computed, 2 reused" in printed and "| random-medium |" not in printed

@@ -6,7 +6,9 @@ circle at 10 m), this one draws what a low-flying swarm meets (issue 15): starts
 axis, static obstacles, the camera's noise, and a JSBSim cell. Cells (N = 8 each):
 
 * ``random-small`` / ``random-medium`` / ``random-large``: the paper's densities at 1.5-15 m;
-* ``circle-n8``: antipodal circle, radius and altitude drawn per episode;
+* ``circle-n8``: antipodal circle, radius and altitude drawn per episode, each UAV facing its goal;
+* ``circle-n8-common``: the same circle with the whole swarm facing one heading drawn per episode (as
+  a swarm set out on a field faces, and as every real autopilot's SITL spawns: north);
 * ``obstacles``: poles, trees and boxes among the UAVs (:data:`OBSTACLE_SCENE_DENSITY`);
 * ``random-medium-jsbsim``: ``random-medium`` on the JSBSim rigid-body backend.
 
@@ -60,6 +62,8 @@ def flown_cells(episodes: int = DEFAULT_EPISODES, seed: int = 0, camera_noise: b
                                                       **common))
              for name, density in DENSITIES.items()]
     cells.append(FlownCell("circle-n8", EvalSettings(scenario=scenario_for("flown", "circle"), **common)))
+    cells.append(FlownCell("circle-n8-common", EvalSettings(
+        scenario=scenario_for("flown", "circle", circle_heading="common"), **common)))
     cells.append(FlownCell("obstacles", EvalSettings(
         scenario=scenario_for("flown", "obstacles", density=OBSTACLE_SCENE_DENSITY), **common)))
     if jsbsim:

@@ -87,6 +87,10 @@ class TrainConfig:
     circle_fraction: float = _param(0.5, "mixed scenario: probability that an episode is a circle episode")
     density: str = _param("medium", "random scenario density: small, medium, large or UAV/m^3")
     circle_radius_m: float = _param(CIRCLE_RADIUS_M, "circle scenario radius in m")
+    circle_heading: str = _param("goal", "training worlds only: where circle UAVs face at the start: goal (each its "
+                                         "own, the paper), common (one heading for the swarm), any (each its own "
+                                         "random one) or mixed (one of the three per episode); validation and "
+                                         "tests fly their own cells (docs/training.md 'Circle start headings')")
     geometry: str = _param("paper", "scene geometry: paper (6 m floor, circle at 10 m) or flown (altitudes "
                                     "1.5-15 m, circles 8-20 m at 2-15 m, 0.5 m start jitter; sitl.sim.config)")
     obstacle_fraction: float = _param(0.0, "mixed scenario: probability that an episode is an obstacles episode")
@@ -244,7 +248,8 @@ class TrainConfig:
         # The scenario checks low_floor_fraction (its range, and a floor drawn per episode): here, so a
         # bad flag fails before the run starts.
         scenario = scenario_for(self.geometry, "random", low_floor_fraction=self.low_floor_fraction,
-                                density_range=parse_density_range(self.density_range))
+                                density_range=parse_density_range(self.density_range),
+                                circle_heading=self.circle_heading)
         if scenario.density_range is not None:  # both ends must make a box the episodes fit in
             from sitl.sim.scenarios import sample_random
 
@@ -545,6 +550,8 @@ def make_sim_config(cfg: TrainConfig, num_worlds: int, record_paths: bool = Fals
     training = scenario_name is None  # randomization trains robustness; evaluations fly the nominal vehicle
     if training and cfg.low_floor_fraction > 0:
         values["low_floor_fraction"] = cfg.low_floor_fraction
+    if training and cfg.circle_heading != "goal":
+        values["circle_heading"] = cfg.circle_heading
     if training and cfg.density_range:
         values["density_range"] = parse_density_range(cfg.density_range)
     scenario = scenario_for(cfg.geometry, name, **values)

@@ -13,6 +13,9 @@ DENSITIES: dict[str, float] = {"small": 0.1, "medium": 0.06, "large": 0.04}
 SCENARIOS = ("random", "circle", "obstacles")
 #: Training may also draw each world's episode from any scenario ("mixed").
 TRAINING_SCENARIOS = SCENARIOS + ("mixed",)
+#: Where circle UAVs face at the start (``ScenarioConfig.circle_heading``); ``mixed`` draws one of the
+#: other three per episode (training).
+CIRCLE_HEADINGS = ("goal", "common", "any", "mixed")
 #: The circle scenario's radius in m (paper IV.C: 8-32 UAVs on a circle, goals antipodal).
 CIRCLE_RADIUS_M = 12.0
 #: Static obstacles of the ``obstacles`` scene (a forest edge, a yard): vertical cylinders (poles,
@@ -70,7 +73,11 @@ class ScenarioConfig:
     ``circle_alt_m``, each facing its goal on the opposite side. Each episode rotates the
     formation by a uniform random angle and moves each start by a uniform random offset of
     up to ``circle_jitter_m`` per axis (goals stay exactly antipodal to the nominal starts),
-    so episodes differ even for a deterministic policy.
+    so episodes differ even for a deterministic policy. ``circle_heading`` sets where the UAVs
+    face at the start (:data:`CIRCLE_HEADINGS`): ``goal`` (the paper: each its own goal),
+    ``common`` (one heading drawn per episode for the whole swarm, as a swarm set out on a field
+    or spawned by an autopilot's SITL faces one way), ``any`` (each UAV its own uniform heading) or,
+    for training, ``mixed`` (each circle episode one of the three, equally likely).
 
     Obstacles: a random scene (same box, altitudes and jitter) among static obstacles standing
     on the ground, drawn anew every episode over the box's footprint widened by
@@ -108,6 +115,7 @@ class ScenarioConfig:
     circle_radius_m: float = CIRCLE_RADIUS_M
     circle_alt_m: float = 10.0
     circle_jitter_m: float = 0.25
+    circle_heading: str = "goal"  # circle starts: goal, common, any or mixed (CIRCLE_HEADINGS)
     circle_fraction: float = 0.5
     altitude_range_m: tuple[float, float] | None = None  # random/obstacles: None = fixed floor box_floor_alt_m
     start_jitter_m: float = 0.0  # random/obstacles: per-axis start offset, up to +-m
@@ -129,6 +137,8 @@ class ScenarioConfig:
             raise ValueError(f"unknown scenario {self.name!r}; choose one of {', '.join(TRAINING_SCENARIOS)}")
         if not 0.0 <= self.circle_fraction <= 1.0:
             raise ValueError(f"circle_fraction must be in [0, 1], got {self.circle_fraction}")
+        if self.circle_heading not in CIRCLE_HEADINGS:
+            raise ValueError(f"unknown circle_heading {self.circle_heading!r}; choose one of {', '.join(CIRCLE_HEADINGS)}")
         if not 0.0 <= self.obstacle_fraction <= 1.0 - self.circle_fraction:
             raise ValueError(f"obstacle_fraction must be in [0, 1 - circle_fraction], got {self.obstacle_fraction}")
         for name in ("altitude_range_m", "circle_alt_range_m", "circle_radius_range_m", "density_range"):

@@ -180,7 +180,19 @@ def sample_circle(num_uavs: int, config: ScenarioConfig, rng: np.random.Generato
     ring[:, 2] = -alt
     goal = ring * np.array([-1.0, -1.0, 1.0])
     start = ring + rng.uniform(-config.circle_jitter_m, config.circle_jitter_m, ring.shape)
-    return ScenarioSample(start, goal, _bearing_rad(start, goal), circle=True)
+    return ScenarioSample(start, goal, _circle_start_heading(start, goal, config.circle_heading, rng), circle=True)
+
+
+def _circle_start_heading(start: np.ndarray, goal: np.ndarray, heading: str, rng: np.random.Generator) -> np.ndarray:
+    """[N] start yaw (rad from north) of a circle episode; draws from ``rng`` only when ``heading`` is not ``goal``,
+    so the paper's circle consumes the generator exactly as before."""
+    if heading == "mixed":
+        heading = ("goal", "common", "any")[int(rng.integers(3))]
+    if heading == "common":
+        return np.full(len(start), rng.uniform(-math.pi, math.pi))
+    if heading == "any":
+        return rng.uniform(-math.pi, math.pi, len(start))
+    return _bearing_rad(start, goal)
 
 
 def random_episode_config(config: ScenarioConfig, rng: np.random.Generator) -> ScenarioConfig:
