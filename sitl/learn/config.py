@@ -90,7 +90,7 @@ class TrainConfig:
     circle_heading: str = _param("goal", "training worlds only: where circle UAVs face at the start: goal (each its "
                                          "own, the paper), common (one heading for the swarm), any (each its own "
                                          "random one) or mixed (one of the three per episode); validation and "
-                                         "tests fly their own cells (docs/training.md 'Circle start headings')")
+                                         "tests fly their own cells (docs/training.md 'Circle worlds that start on one heading')")
     geometry: str = _param("paper", "scene geometry: paper (6 m floor, circle at 10 m) or flown (altitudes "
                                     "1.5-15 m, circles 8-20 m at 2-15 m, 0.5 m start jitter; sitl.sim.config)")
     obstacle_fraction: float = _param(0.0, "mixed scenario: probability that an episode is an obstacles episode")
