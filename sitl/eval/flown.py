@@ -8,7 +8,8 @@ axis, static obstacles, the camera's noise, and a JSBSim cell. Cells (N = 8 each
 * ``random-small`` / ``random-medium`` / ``random-large``: the paper's densities at 1.5-15 m;
 * ``circle-n8``: antipodal circle, radius and altitude drawn per episode, each UAV facing its goal;
 * ``circle-n8-common``: the same circle with the whole swarm facing one heading drawn per episode (as
-  a swarm set out on a field faces, and as every real autopilot's SITL spawns: north);
+  a swarm set out on a field faces, and as the PX4 SIH and ArduCopter SITL vehicles of
+  ``sitl.real_autopilots`` start: north);
 * ``obstacles``: poles, trees and boxes among the UAVs (:data:`OBSTACLE_SCENE_DENSITY`);
 * ``random-medium-jsbsim``: ``random-medium`` on the JSBSim rigid-body backend.
 
