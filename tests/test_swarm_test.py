@@ -334,8 +334,28 @@ def test_policy_file_flies_with_its_own_camera_and_the_reference_beside_it(tmp_p
     assert "| sac_ae |" in printed and "| straight |" in printed
 
 
+def test_circle_heading_flies_the_swarm_on_one_heading(tmp_path, capsys):
+    """``--circle-heading common``: the first episode's layout is the default's, the swarm starting on one heading,
+    which the settings and the printed description name."""
+    code = main(["--policy", "straight", "--circle-heading", "common", "--episodes", "3", "--out", str(tmp_path / "c"),
+                 "--plot-episodes", "0", "--no-progress"])
+    assert code == 0
+    data = json.loads((tmp_path / "c" / "metrics.json").read_text())
+    assert data["settings"]["scenario"]["circle_heading"] == "common"
+    assert "circle r=12 m at 10 m, facing common" in capsys.readouterr().out
+    assert main(["--policy", "straight", "--episodes", "3", "--out", str(tmp_path / "g"), "--plot-episodes", "0",
+                 "--no-progress"]) == 0
+    goal = json.loads((tmp_path / "g" / "metrics.json").read_text())
+    first = [(a, b) for a, b in zip(data["records"], goal["records"]) if a["episode"] == 0]  # later ones: new draws
+    assert len(first) == 8
+    for a, b in first:
+        assert a["start_ned"] == b["start_ned"] and a["goal_ned"] == b["goal_ned"]
+    assert any(a["path_ned"][5] != b["path_ned"][5] for a, b in first)  # the same layout, flown from other headings
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--n", "0"], "must be >= 1"),
+    (["--circle-heading", "north"], "invalid choice"),
     (["--episodes", "many"], "expected an integer"),
     (["--scenario", "square"], "invalid choice"),
     (["--policy", "straight", "--density", "huge"], "unknown density 'huge'"),

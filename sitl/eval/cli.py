@@ -61,7 +61,7 @@ from sitl.eval.evaluate import EvalResult, EvalSettings, density_label, evaluate
 from sitl.eval.methods import BASELINES, DEFAULT_POLICY, EvaluationError, resolve_method
 from sitl.eval.paper import DEFAULT_FIG6_NS, PAPER_METHODS, paper_cells, parse_policies, run_paper
 from sitl.eval.report import write_json, markdown_table
-from sitl.sim.config import CIRCLE_RADIUS_M, DENSITIES, SCENARIOS, ScenarioConfig, density_from_name
+from sitl.sim.config import CIRCLE_HEADINGS, CIRCLE_RADIUS_M, DENSITIES, SCENARIOS, ScenarioConfig, density_from_name
 from sitl.sim.dynamics import DYNAMICS_NAMES
 from sitl.sim.scenarios import EVAL_SEED_OFFSET
 
@@ -115,6 +115,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         help=f"random scenario density: {', '.join(DENSITIES)} or UAV/m^3 (default medium)")
     parser.add_argument("--radius", type=float_range(0.0, MAX_RADIUS_M, low_open=True), default=CIRCLE_RADIUS_M,
                         help=f"circle radius in m (default {CIRCLE_RADIUS_M:g})")
+    parser.add_argument("--circle-heading", choices=[h for h in CIRCLE_HEADINGS if h != "mixed"], default="goal",
+                        help="where circle UAVs face at the start: goal (each its own, the paper), common (the swarm "
+                             "one heading drawn per episode, as SITL spawns it) or any (each its own random one) "
+                             "(default goal; docs/results.md \"The circle's start heading\")")
     _add_common(parser)
     parser.add_argument("--out", type=output_dir, default=None,
                         help="output folder (default runs/swarm_test/<method>-<scenario>-n<N>)")
@@ -167,7 +171,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         args.batch = max(args.batch, args.episodes)  # the in-process run then meets exactly the same episodes
     try:
         density = density_from_name(args.density)
-        args.scenario_config = ScenarioConfig(name=args.scenario, density=density, circle_radius_m=args.radius)
+        args.scenario_config = ScenarioConfig(name=args.scenario, density=density, circle_radius_m=args.radius,
+                                              circle_heading=args.circle_heading)
     except ValueError as err:
         parser.error(str(err))
     args.parser = parser
@@ -190,7 +195,8 @@ _port = port_in(1024, 65535)  # unprivileged ports for the --mavlink processes
 
 def _scenario_tag(scenario: ScenarioConfig) -> str:
     if scenario.name == "circle":
-        return f"circle-r{scenario.circle_radius_m:g}"
+        heading = "" if scenario.circle_heading == "goal" else f"-{scenario.circle_heading}"
+        return f"circle-r{scenario.circle_radius_m:g}{heading}"
     return f"{scenario.name}-{density_label(scenario.density).replace('/', '')}"
 
 

@@ -50,6 +50,8 @@ class EvalSettings:
             radius = "{:g}-{:g}".format(*s.circle_radius_range_m) if s.circle_radius_range_m else f"{s.circle_radius_m:g}"
             alt = "{:g}-{:g}".format(*s.circle_alt_range_m) if s.circle_alt_range_m else f"{s.circle_alt_m:g}"
             where = f"circle r={radius} m at {alt} m"
+            if s.circle_heading != "goal":
+                where += f", facing {s.circle_heading}"
         else:
             where = f"{s.name} {density_label(s.density)}"
             if s.altitude_range_m:
