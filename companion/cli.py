@@ -25,6 +25,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from companion.flightlog import DEFAULT_LOG_KEEP, DEFAULT_LOG_MAX_MB
+from companion.face_goal import DEFAULT_FACE_GOAL_S, FaceGoalSpec, add_face_goal_argument
 from companion.governor import (DEFAULT_GOVERNOR, GOVERNOR_PRESETS, add_governor_argument, describe_presets,
                                 governor_name)
 from companion.recording import DEFAULT_RECORD_KEEP, DEFAULT_RECORD_MAX_MB
@@ -242,6 +243,12 @@ def build_parser() -> argparse.ArgumentParser:
                       "dense traffic; PX4's collision prevention does nothing in Offboard; default off: "
                       "docs/companion.md). A policy trained with the governor "
                       "(policy.json 'governor') always flies with it, with the file's settings")
+    add_face_goal_argument(
+        flight, help="before flying to a new goal, turn in place to face it and start the policy SECONDS after the goal "
+                     f"arrived (or after engaging; --face-goal alone: {DEFAULT_FACE_GOAL_S:g} s, half a turn at the "
+                     "policy's yaw limit and settling). The same hold for every vehicle: a swarm given its goals "
+                     "together starts together, each facing its goal, as the policy was trained (docs/companion.md "
+                     "'Face the goal first'). Default off")
     output = parser.add_argument_group("output")
     output.add_argument("--log", type=_output_file, default="-", metavar="PATH",
                         help="JSON-lines log of every control step and event (default '-': stdout)")
@@ -360,6 +367,9 @@ def _fly(args: argparse.Namespace, log) -> int:
         log.event("governor", f"speed governor '{governor_name(governor)}' after the policy ({source}): "
                               f"{governor.describe()}",
                   setting=governor_name(governor), source=source, governor=governor.to_dict())
+    if args.face_goal is not None:
+        log.event("face_goal", f"face the goal first (--face-goal): {FaceGoalSpec(hold_s=args.face_goal).describe()}",
+                  hold_s=args.face_goal)
 
     # 2. The camera.
     from companion.depth_sources import DepthSourceError, open_depth_source
@@ -414,7 +424,8 @@ def _fly(args: argparse.Namespace, log) -> int:
                                  timeout_s=args.timeout, link_timeout_s=args.link_timeout,
                                  stream_rate_hz=args.stream_rate, camera_sync=not args.no_camera_sync,
                                  obstacle_distance=args.obstacle_distance,
-                                 governor=GOVERNOR_PRESETS[args.governor] if args.governor else None)
+                                 governor=GOVERNOR_PRESETS[args.governor] if args.governor else None,
+                                 face_goal=None if args.face_goal is None else FaceGoalSpec(hold_s=args.face_goal))
         notifier = SystemdNotifier()
         companion = Companion(policy, depth, link, config, log, recorder, notifier)
         notifier.ready(f"model, camera and link up ({hb.kind.value}, system {hb.sysid})")

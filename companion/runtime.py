@@ -79,6 +79,7 @@ from companion.flight_modes import (
     PX4_MODE_BY_NAME,
     AutopilotKind,
 )
+from companion.face_goal import FaceGoalSpec, face_goal_commands, goal_bearing_frd_rad
 from companion.governor import GovernorSpec, SpeedGovernor
 from companion.inference import InferenceWorker
 from companion.observation import DepthFrameStack, RememberedDepth, build_state
@@ -176,6 +177,8 @@ class CompanionConfig:
     obstacle_distance: bool = True  # publish OBSTACLE_DISTANCE per depth frame (companion.obstacle_distance)
     # The speed governor after the policy (companion.governor); None: off, unless the policy file has one.
     governor: GovernorSpec | None = None
+    # Turn in place to face each new goal and fly a fixed time after it arrived (companion.face_goal); None: off.
+    face_goal: FaceGoalSpec | None = None
 
 
 class Companion:
@@ -205,6 +208,8 @@ class Companion:
         governor = policy.governor if policy.governor is not None else config.governor
         self.governor = SpeedGovernor(policy.camera, governor) if governor is not None else None
         self.goal_ned = None if config.goal_ned is None else np.asarray(config.goal_ned, dtype=np.float64)
+        self._goal_set_s = -math.inf  # when the goal last changed (--face-goal's hold counts from it or engagement)
+        self._facing = False  # --face-goal: turning in place, the policy's commands held back
 
         self.phase = FlightPhase.WAITING_FOR_TELEMETRY
         self.phase_since_s = time.monotonic()
@@ -404,6 +409,7 @@ class Companion:
             self._event("goal", f"goal {np.round(goal, 2).tolist()} ignored while {self.phase.value}", level="warning")
             return
         self.goal_ned = goal
+        self._goal_set_s = time.monotonic()
         text = f"goal set to N {goal[0]:.1f} E {goal[1]:.1f} D {goal[2]:.1f}"
         self._event("goal", f"{text} (from system {detail['from'][0]}, {'signed' if detail['signed'] else 'unsigned'})",
                     goal_ned=goal, sender=detail["from"], signed=detail["signed"])
@@ -477,7 +483,7 @@ class Companion:
         self.log.step(
             step=self.step_index, phase=self.phase.value, mode=hb.mode if hb else None, armed=hb.armed if hb else None,
             sent=command is not None, hold=hold, cmd=command, policy=info.get("policy"), clamped=info.get("clamped", False),
-            governor=info.get("governor"),
+            governor=info.get("governor"), face_goal_s=info.get("face_goal_s"),
             pos_ned=None if odom is None else odom.pos_ned, goal_ned=self.goal_ned,
             dist_m=info.get("dist_m"),
             depth_age_ms=None if self.latest_frame is None else (now - self.latest_frame.arrival_s) * 1000.0,
@@ -778,6 +784,20 @@ class Companion:
             return self._hold(info)
         command = np.clip(raw, self.low, self.high)
         info["clamped"] = bool(np.any(command != raw))
+        if self.config.face_goal is not None:  # the policy ran (its stack stays fresh); its command waits
+            facing_s = now - max(self._goal_set_s, self.phase_since_s)
+            bearing_deg = math.degrees(float(goal_bearing_frd_rad(odom.pos_ned, odom.yaw_rad, self.goal_ned)))
+            if facing_s < self.config.face_goal.hold_s:
+                command = face_goal_commands(odom.pos_ned[None], np.array([odom.yaw_rad]), self.goal_ned[None],
+                                             float(self.high[2]), self.config.face_goal)[0].astype(np.float64)
+                info["face_goal_s"] = facing_s
+                if not self._facing:
+                    self._event("face_goal", f"turning to face the goal ({bearing_deg:+.0f} deg off): the policy flies "
+                                             f"{self.config.face_goal.hold_s:g} s after the goal", bearing_deg=bearing_deg)
+            elif self._facing:
+                self._event("face_goal", f"facing the goal ({bearing_deg:+.0f} deg off): the policy flies",
+                            bearing_deg=bearing_deg)
+            self._facing = facing_s < self.config.face_goal.hold_s
         if self.governor is not None:  # on the newest frame the policy saw, as in the simulator's evaluation
             governed, capped, nearest, self._governor_turning = self.governor.apply(
                 self.stack.frames[:, -1], command[None], self._governor_turning)

@@ -98,13 +98,20 @@ def _start_memory(rig: Rig, tmp) -> None:
                         "--takeoff", "3", "--exit-on-arrival", "--timeout", "12", "--record", str(rig.record))
 
 
+def _start_face_goal(rig: Rig, tmp) -> None:
+    # Facing north, the goal ahead on the left: the goal seeker would fly forward while turning.
+    rig.start_vehicle("--airborne", "--start", "0,0,-3")
+    rig.start_companion(make_policy(tmp / "policy.pt"), "--goal", "6,-6,-3", "--arm", "--takeoff", "3",
+                        "--face-goal", "4", "--exit-on-arrival", "--timeout", "60")
+
+
 @pytest.fixture(scope="module")
 def rigs(request, tmp_path_factory):
     pool = ScenarioPool(request, tmp_path_factory, {
         "px4_15m": _start_px4_15m, "ardupilot_15m": _start_ardupilot_15m, "pilot_engages": _start_pilot_engages,
         "gcs_goal": _start_gcs_goal,
         "signing": _start_signing, "unsigned_companion": _start_unsigned_companion, "obstacle": _start_obstacle,
-        "governor": _start_governor, "memory": _start_memory})
+        "governor": _start_governor, "memory": _start_memory, "face_goal": _start_face_goal})
     yield pool
     pool.stop_all()
 
@@ -325,6 +332,32 @@ def test_the_governor_takes_a_policy_that_never_brakes_round_a_pole(rigs):
     track = np.array([p for line in rig.trace.read_text().splitlines() for p in [json.loads(line)["pos_ned"][0]]])
     closest_m = float(np.hypot(track[:, 0] - 10.0, track[:, 1]).min())
     assert closest_m > 0.5 + 0.3, closest_m  # the pole's radius plus the vehicle's collision radius R
+
+
+@scenario("face_goal")
+def test_face_goal_turns_in_place_before_the_policy_flies(rigs):
+    """``--face-goal 4``: for 4 s from engaging the companion holds position and turns left towards a goal 45 deg
+    off (the policy runs, its forward command is held back), logs the start and the end of the turn, then the
+    policy flies, facing the goal, and arrives."""
+    rig = rigs["face_goal"]
+    code = rig.wait_companion(60)
+    rig.procs.stop_all()
+    assert code == 0, rig.procs.stderr("companion")[-3000:]
+    start, end = _events(rig, "face_goal")[-2:]
+    assert "turning to face the goal" in start["message"] and start["bearing_deg"] == pytest.approx(-45.0, abs=3.0)
+    assert "facing the goal" in end["message"] and abs(end["bearing_deg"]) < 5.0
+    facing = [s for s in _steps(rig) if s.get("face_goal_s") is not None]
+    assert facing and all(s["cmd"][0] == 0.0 and s["cmd"][1] == 0.0 for s in facing)
+    assert facing[0]["cmd"][2] == pytest.approx(-0.5)  # left, at the policy's yaw limit
+    assert any(s["policy"][0] > 0.1 for s in facing)  # what the hold replaced
+    assert facing[-1]["mono"] - facing[0]["mono"] == pytest.approx(4.0, abs=0.3)
+    moved = np.linalg.norm(np.subtract(facing[-1]["pos_ned"], facing[0]["pos_ned"]))
+    assert moved < 0.3, moved
+    flying = [s for s in _steps(rig) if s["phase"] == "flying_to_goal" and s.get("face_goal_s") is None
+              and s.get("policy_step", True) and s["mono"] > facing[-1]["mono"] and s["cmd"] is not None]
+    assert flying and flying[0]["cmd"][0] > 0.1
+    (arrived,) = _events(rig, "arrived")
+    assert arrived["dist_m"] <= 0.5
 
 
 @scenario("memory")

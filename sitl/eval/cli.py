@@ -41,6 +41,7 @@ import signal
 import sys
 from pathlib import Path
 
+from companion.face_goal import DEFAULT_FACE_GOAL_S, FaceGoalSpec, add_face_goal_argument
 from companion.governor import GOVERNOR_PRESETS
 from companion.spec import CAMERA_PRESETS, DEFAULT_TASK_SPEC
 from sitl.cli_args import (
@@ -80,6 +81,15 @@ MAX_RADIUS_M = 10_000.0
 
 def _add_governor(parser: argparse.ArgumentParser) -> None:
     add_governor_flag(parser, ", the straight reference stays plain")
+    add_face_goal_argument(
+        parser, help="the controller turns in place to face its goal for SECONDS from the episode's start before it "
+                     f"flies (companion --face-goal; {DEFAULT_FACE_GOAL_S:g} s alone): every UAV of an episode "
+                     "starts flying together, facing its goal; the label gains +face-goal, the straight reference "
+                     "stays plain (default off)")
+
+
+def _face_goal(args: argparse.Namespace) -> FaceGoalSpec | None:
+    return None if args.face_goal is None else FaceGoalSpec(hold_s=args.face_goal)
 
 
 def _add_common(parser: argparse.ArgumentParser) -> None:
@@ -206,6 +216,8 @@ def run_single(args: argparse.Namespace) -> int:
         method = resolve_method(args.policy)
     except EvaluationError as err:
         args.parser.error(str(err))
+    if args.face_goal is not None:
+        method = method.with_face_goal(_face_goal(args))
     if args.governor:
         method = method.with_governor(GOVERNOR_PRESETS[args.governor])
     if method.kind == "policy":
@@ -435,7 +447,8 @@ def flown_main(argv: list[str] | None = None) -> int:
 
     args = parse_flown_args(argv)
     try:
-        methods = protocol_methods(args.policy, args.reference, GOVERNOR_PRESETS[args.governor] if args.governor else None)
+        methods = protocol_methods(args.policy, args.reference, GOVERNOR_PRESETS[args.governor] if args.governor else None,
+                                   _face_goal(args))
     except EvaluationError as err:
         args.parser.error(str(err))
     if methods[0].kind == "policy":

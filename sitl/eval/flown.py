@@ -28,6 +28,7 @@ import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+from companion.face_goal import FaceGoalSpec
 from companion.governor import GovernorSpec
 from sitl.eval.evaluate import EvalSettings, evaluate_method
 from sitl.eval.methods import ORCA_BASELINES, Method, file_digest, resolve_method
@@ -85,6 +86,8 @@ def _cell_key(cell: FlownCell, method: Method) -> dict:
            "policy_sha256": file_digest(method.path) if method.path else None}
     if method.governor is not None:  # only then: the keys of stored ungoverned cells stay as they were
         key["governor"] = method.governor.to_dict()
+    if method.face_goal is not None:  # likewise
+        key["face_goal"] = dataclasses.asdict(method.face_goal)
     if method.kind == "baseline" and method.label in ORCA_BASELINES:  # its settings, obstacle-seeing included
         key["orca"] = method.info()["orca"]  # (since 2026-11-27); info() hashes no file for a baseline
     return key
@@ -177,10 +180,14 @@ def run_flown(out: Path, cells: list[FlownCell], methods: list[Method], progress
     return {"results": results, "status": status}
 
 
-def protocol_methods(policy: str, reference: bool = True, governor: GovernorSpec | None = None) -> list[Method]:
-    """The controller named ``policy`` (with the speed ``governor`` after it, if given) and, unless
-    ``reference`` is off or the controller is the plain ``straight`` line itself, ``straight``."""
+def protocol_methods(policy: str, reference: bool = True, governor: GovernorSpec | None = None,
+                     face_goal: FaceGoalSpec | None = None) -> list[Method]:
+    """The controller named ``policy`` (turning to face its goal first with ``face_goal``, with the speed
+    ``governor`` after it, if given) and, unless ``reference`` is off or the controller is the plain ``straight``
+    line itself, ``straight`` (always plain)."""
     method = resolve_method(policy)
+    if face_goal is not None:
+        method = method.with_face_goal(face_goal)
     if governor is not None:
         method = method.with_governor(governor)
     methods = [method]

@@ -13,11 +13,12 @@ from pathlib import Path
 
 import numpy as np
 
+from companion.face_goal import FaceGoalSpec
 from companion.governor import DEFAULT_GOVERNOR, GovernorSpec, governor_name
-from companion.spec import CameraSpec, MemorySpec
+from companion.spec import DEFAULT_ACTION_SPEC, CameraSpec, MemorySpec
 from sitl.eval.orca import ORCA_REFERENCES
 from sitl.sim.env import Observation, SwarmEnv
-from sitl.sim.episodes import Actor, ActorFactory, governed_actor
+from sitl.sim.episodes import Actor, ActorFactory, face_goal_actor, governed_actor
 
 DEFAULT_POLICY = Path("models/policy.pt")
 
@@ -29,6 +30,8 @@ BASELINES = ("straight", *ORCA_BASELINES)
 #: Appended to a controller's label when the speed governor follows it (``+governor-NAME`` for a preset other
 #: than the default, ``companion.governor.GOVERNOR_PRESETS``).
 GOVERNED_SUFFIX = "+governor"
+#: Appended to a controller's label when it turns to face its goal before flying (``companion.face_goal``).
+FACE_GOAL_SUFFIX = "+face-goal"
 
 
 class EvaluationError(ValueError):
@@ -47,6 +50,7 @@ class Method:
     provenance: dict = field(default_factory=dict)
     governor: GovernorSpec | None = None  # companion.governor on the commands (label gains "+governor")
     memory: MemorySpec | None = None  # the policy's remembered-depth input: the simulator builds it
+    face_goal: FaceGoalSpec | None = None  # companion.face_goal before the flight (label gains "+face-goal")
     _policy: object = field(default=None, repr=False)
 
     def info(self) -> dict:
@@ -54,6 +58,8 @@ class Method:
         out = {"label": self.label, "kind": self.kind}
         if self.governor is not None:
             out["governor"] = self.governor.to_dict()
+        if self.face_goal is not None:
+            out["face_goal"] = dataclasses.asdict(self.face_goal)
         if self.path:
             out |= {"path": self.path, "sha256": file_digest(self.path),
                     "camera": self.camera.to_dict() if self.camera else None, "provenance": self.provenance}
@@ -67,6 +73,9 @@ class Method:
     def make_actor(self, env: SwarmEnv) -> Actor:
         """This controller's :data:`~sitl.sim.episodes.Actor` for every UAV of ``env`` (an :data:`ActorFactory`)."""
         actor = self._make_ungoverned_actor(env)
+        if self.face_goal is not None:  # before the governor, as in the companion
+            action = getattr(self._policy, "action", None) or DEFAULT_ACTION_SPEC
+            actor = face_goal_actor(actor, self.face_goal, env, float(action.high_array()[2]))
         if self.governor is None:
             return actor
         return governed_actor(actor, self.governor, env)
@@ -85,8 +94,19 @@ class Method:
         suffix = GOVERNED_SUFFIX if name in (DEFAULT_GOVERNOR, "custom") else f"{GOVERNED_SUFFIX}-{name}"
         return dataclasses.replace(self, label=self.label + suffix, governor=spec)
 
+    def with_face_goal(self, spec: FaceGoalSpec) -> Method:
+        """The same controller, turning in place to face its goal for ``spec.hold_s`` before it flies
+        (:mod:`companion.face_goal`)."""
+        if self.governor is not None:  # the suffixes' order is the order they act in
+            base = self.label.split(GOVERNED_SUFFIX)[0]
+            label = base + FACE_GOAL_SUFFIX + self.label[len(base):]
+        else:
+            label = self.label + FACE_GOAL_SUFFIX
+        return dataclasses.replace(self, label=label, face_goal=spec)
+
     def _make_ungoverned_actor(self, env: SwarmEnv) -> Actor:
-        name = self.label.split(GOVERNED_SUFFIX)[0]  # the controller the governor follows
+        # the controller the face-goal start and the governor follow
+        name = self.label.split(FACE_GOAL_SUFFIX)[0].split(GOVERNED_SUFFIX)[0]
         if self.kind == "baseline" and name == "straight":
             from sitl.sim.baselines import straight_actor
 

@@ -44,7 +44,7 @@ def evaluate_beside_in_process(method: Method, settings: EvalSettings, in_proces
         time_limit_s=settings.max_episode_steps * sim_config.control_period_s,
         task=TaskSpec(collision_radius_m=sim_config.collision_radius_m,  # scored as the in-process run beside it
                       arrival_radius_m=sim_config.reward.arrival_radius_m, max_episode_steps=settings.max_episode_steps),
-        governor=governor)
+        governor=governor, face_goal_s=None if method.face_goal is None else method.face_goal.hold_s)
     evaluation = evaluate_over_mavlink(samples, mav_settings, out, progress=progress)
     label = f"{method.label} (MAVLink)"
     result = EvalResult(replace(method, label=label), settings, sim_config, evaluation.records,

@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from companion.face_goal import DEFAULT_FACE_GOAL_S, parse_face_goal_s
 from companion.flight_modes import (ARDUCOPTER_MODE_BY_NAME, PX4_MODE_BY_NAME)
 from companion.spec import CAMERA_PRESETS, DEFAULT_TASK_SPEC
 from sitl.realtime.depth_bridge import ned_offset_m, shift_global
@@ -429,8 +430,11 @@ def pairwise_min_distance(pos: np.ndarray) -> tuple[float, tuple[int, int]]:
 def fly_circle(kind: str, binary: Path, n: int, out: Path, radius_m: float = 12.0, altitude_m: float = 8.0,
                rotation_deg: float = 0.0, time_limit_s: float = 60.0, ready_timeout_s: float = 240.0,
                settle_s: float = 10.0, params: dict[str, float] | None = None, status=print,
-               policy: Path = DEFAULT_POLICY, camera: str | None = None) -> dict:
+               policy: Path = DEFAULT_POLICY, camera: str | None = None, face_goal_s: float | None = None) -> dict:
     """A circle of ``n`` vehicles flying to their antipodes together; the measured results.
+
+    The vehicles spawn facing north, as SITL spawns them; with ``face_goal_s`` every companion turns to face its goal
+    first and flies that long after the goals were sent (``companion --face-goal``).
 
     Arrival is the first time within the task's arrival radius of the goal; the settled error is
     the distance to the goal ``settle_s`` after arrival; a collision is two vehicles closer than
@@ -446,7 +450,8 @@ def fly_circle(kind: str, binary: Path, n: int, out: Path, radius_m: float = 12.
         offsets = swarm.wait_tracking(ready_timeout_s)
         status(f"{kind}: world tracks all {n} after {time.monotonic() - started:.0f} s; starting companions")
         for i in range(n):
-            swarm.start_companion(i, takeoff_m=altitude_m)
+            swarm.start_companion(i, *(() if face_goal_s is None else ("--face-goal", f"{face_goal_s:g}")),
+                                  takeoff_m=altitude_m)
         swarm.wait_phase(list(range(n)), "flying_to_goal", ready_timeout_s)
         ready_s = time.monotonic() - started
         status(f"{kind}: all {n} airborne after {ready_s:.0f} s; sending the goals")
@@ -473,7 +478,7 @@ def fly_circle(kind: str, binary: Path, n: int, out: Path, radius_m: float = 12.
         world_status = [r for r in JsonLinesTail(swarm.world_log).read() if r.get("event") == "world_status"]
     summary = _circle_summary(kind, n, radius_m, altitude_m, rotation_deg, tr, goals, offsets, arrived_t, t0,
                               settle_s, ready_s, world_status)
-    summary |= {"policy": str(policy), "camera": camera or "the world's default"}
+    summary |= {"policy": str(policy), "camera": camera or "the world's default", "face_goal_s": face_goal_s}
     write_summary(out, summary)
     return summary
 
@@ -612,6 +617,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="bearing of vehicle 0's spawn point from the centre (default 0)")
     circle.add_argument("--time-limit", type=positive_float, default=60.0, metavar="S",
                         help="after the goals are sent (default 60 s)")
+    circle.add_argument("--face-goal", nargs="?", const=DEFAULT_FACE_GOAL_S, default=None, type=parse_face_goal_s,
+                        metavar="SECONDS", help="every companion turns to face its goal first and flies SECONDS after "
+                                                f"the goals (companion --face-goal; {DEFAULT_FACE_GOAL_S:g} s alone)")
     stop.add_argument("--signal", choices=("TERM", "KILL", "INT"), default="TERM")
     stop.add_argument("--distance", type=positive_float, default=30.0, help="goal distance north in metres (default 30)")
     args = parser.parse_args(argv)
@@ -629,7 +637,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.what == "circle":
             summary = fly_circle(args.autopilot, binary, args.n, args.out, args.radius, args.altitude, args.rotation,
                                  args.time_limit, args.ready_timeout, params=params, status=status,
-                                 policy=args.model, camera=args.camera)
+                                 policy=args.model, camera=args.camera, face_goal_s=args.face_goal)
         else:
             summary = fly_and_stop(args.autopilot, binary, args.out, getattr(signal, f"SIG{args.signal}"),
                                    args.distance, args.altitude, ready_timeout_s=args.ready_timeout, params=params,

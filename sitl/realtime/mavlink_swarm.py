@@ -74,6 +74,7 @@ class MavlinkSettings:
     ready_timeout_s: float = 120.0  # start-up, arming and takeoff
     companion_threads: int = 1  # torch threads per companion: N of them share the machine
     governor: str | None = None  # companion --governor NAME (companion.governor.GOVERNOR_PRESETS); None: off
+    face_goal_s: float | None = None  # companion --face-goal SECONDS (companion.face_goal); None: off
     task: TaskSpec = DEFAULT_TASK_SPEC  # collision and arrival radii the outcomes are scored with (the in-process run's)
 
     def __post_init__(self) -> None:
@@ -287,6 +288,8 @@ def fly_episode(sample: ScenarioSample, episode: int, settings: MavlinkSettings,
                     "--takeoff", f"{-sample.start_ned[i, 2]:.2f}"]
             if settings.governor:
                 args += ["--governor", settings.governor]
+            if settings.face_goal_s is not None:
+                args += ["--face-goal", f"{settings.face_goal_s:g}"]
             groups.start(name, args, folder / f"{name}.out")
         status(f"episode {episode}: {n} companions starting")
         _wait_companions_ready(groups, gcs, folder, names, started + settings.ready_timeout_s, status, episode)

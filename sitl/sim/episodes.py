@@ -15,6 +15,7 @@ from typing import Protocol
 
 import numpy as np
 
+from companion.face_goal import FaceGoalSpec, face_goal_commands
 from companion.governor import GovernorSpec, SpeedGovernor
 from sitl.sim.config import SimConfig
 from sitl.sim.env import Observation, SwarmEnv
@@ -75,6 +76,24 @@ def governed_actor(actor: Actor, spec: GovernorSpec, env: SwarmEnv) -> Actor:
     """``actor`` with the speed governor ``spec`` after it (:class:`SwarmGovernor`)."""
     govern = SwarmGovernor(env, spec)
     return lambda obs: govern(obs, actor(obs))
+
+
+def face_goal_actor(actor: Actor, spec: FaceGoalSpec, env: SwarmEnv, yaw_rate_limit_rad_s: float) -> Actor:
+    """``actor`` whose commands wait ``spec.hold_s`` from each UAV's start while it turns in place to face its goal
+    (:mod:`companion.face_goal`, as ``companion --face-goal`` does from the goal's arrival). The actor still runs
+    every step; only its commands are replaced. Every UAV of a world starts together, so they fly together."""
+    hold_steps = int(np.ceil(spec.hold_s / env.config.control_period_s - 1e-9))
+
+    def act(obs: Observation) -> np.ndarray:
+        out = np.array(actor(obs), dtype=np.float32)  # a copy: the actor may reuse its array
+        rows = np.flatnonzero(env.acting & (env.flight_steps < hold_steps))
+        if rows.size:
+            d = env.dynamics
+            out[rows] = face_goal_commands(d.pos_ned[rows], d.yaw_rad[rows], env.goal_ned[rows],
+                                           yaw_rate_limit_rad_s, spec)
+        return out
+
+    return act
 
 
 def run_episodes(make_actor: ActorFactory, sim_config: SimConfig, seed: int, episodes: int,
