@@ -210,6 +210,9 @@ class Companion:
         self.goal_ned = None if config.goal_ned is None else np.asarray(config.goal_ned, dtype=np.float64)
         self._goal_set_s = -math.inf  # when the goal last changed (--face-goal's hold counts from it or engagement)
         self._facing = False  # --face-goal: turning in place, the policy's commands held back
+        # --face-goal: the point and heading held this tick (None: no face-goal target this tick)
+        self._face_target: tuple[np.ndarray, float] | None = None
+        self._face_hold_ned: np.ndarray | None = None  # where the current turn in place started
 
         self.phase = FlightPhase.WAITING_FOR_TELEMETRY
         self.phase_since_s = time.monotonic()
@@ -408,8 +411,9 @@ class Companion:
         if self.phase in (FlightPhase.LANDING, FlightPhase.LANDED, FlightPhase.HANDED_BACK, FlightPhase.LINK_LOST):
             self._event("goal", f"goal {np.round(goal, 2).tolist()} ignored while {self.phase.value}", level="warning")
             return
+        if self.goal_ned is None or not np.array_equal(goal, self.goal_ned):  # a resent copy is not a new goal
+            self._goal_set_s = time.monotonic()
         self.goal_ned = goal
-        self._goal_set_s = time.monotonic()
         text = f"goal set to N {goal[0]:.1f} E {goal[1]:.1f} D {goal[2]:.1f}"
         self._event("goal", f"{text} (from system {detail['from'][0]}, {'signed' if detail['signed'] else 'unsigned'})",
                     goal_ned=goal, sender=detail["from"], signed=detail["signed"])
@@ -463,6 +467,7 @@ class Companion:
             seconds = self.worker.discarded.pop(0)
             self._event("policy_late", f"discarded a late policy answer (inference took {seconds * 1000:.0f} ms)",
                         level="warning", inference_ms=seconds * 1000.0)
+        self._face_target = None  # set again by this tick's face-goal step only
         command = self._run_phase(now, info)
         sent_s = None
         if command is not None:
@@ -494,7 +499,8 @@ class Companion:
             inference_ms=None if info.get("inference_s") is None else info["inference_s"] * 1000.0,
             tick_late_ms=None if late is None else late * 1000.0, period_ms=None if period is None else period * 1000.0,
             extra=extra, stacked=info.get("stacked"), stack_seqs=info.get("stack_seqs"),
-            hold_point_ned=None if command is None or not self._holding_point() else self._hold_point[0],
+            hold_point_ned=None if command is None else (self._hold_point[0] if self._holding_point() else (
+                None if self._face_target is None else self._face_target[0])),
         )
         if self.recorder is not None and frame is not None and info.get("state") is not None:
             try:
@@ -515,6 +521,8 @@ class Companion:
     def _send(self, command: np.ndarray) -> float:
         if self._holding_point():  # at the goal: hold the point, not a zero velocity that drifts on
             self.link.send_position_target(*self._hold_point)
+        elif self._face_target is not None:  # turning to face the goal: hold the point, turn to the heading
+            self.link.send_position_target(*self._face_target)
         else:
             self.link.send_velocity_setpoint(command[0], command[1], command[2])
         sent_s = time.monotonic()
@@ -788,12 +796,19 @@ class Companion:
             facing_s = now - max(self._goal_set_s, self.phase_since_s)
             bearing_deg = math.degrees(float(goal_bearing_frd_rad(odom.pos_ned, odom.yaw_rad, self.goal_ned)))
             if facing_s < self.config.face_goal.hold_s:
+                # What the simulator flies (zero velocity, a yaw rate to the goal) is logged as the command; the
+                # autopilot gets the same as a position target: the point where the turn started and the heading
+                # to the goal, so it holds its altitude while it turns (PX4 drifted by metres on zero velocity
+                # and a yaw rate) and turns at its own rate.
                 command = face_goal_commands(odom.pos_ned[None], np.array([odom.yaw_rad]), self.goal_ned[None],
                                              float(self.high[2]), self.config.face_goal)[0].astype(np.float64)
                 info["face_goal_s"] = facing_s
                 if not self._facing:
+                    self._face_hold_ned = np.array(odom.pos_ned, dtype=np.float64)
                     self._event("face_goal", f"turning to face the goal ({bearing_deg:+.0f} deg off): the policy flies "
                                              f"{self.config.face_goal.hold_s:g} s after the goal", bearing_deg=bearing_deg)
+                to_goal = self.goal_ned - self._face_hold_ned
+                self._face_target = (self._face_hold_ned, math.atan2(to_goal[1], to_goal[0]))
             elif self._facing:
                 self._event("face_goal", f"facing the goal ({bearing_deg:+.0f} deg off): the policy flies",
                             bearing_deg=bearing_deg)

@@ -99,10 +99,9 @@ def _start_memory(rig: Rig, tmp) -> None:
 
 
 def _start_face_goal(rig: Rig, tmp) -> None:
-    # Facing north, the goal ahead on the left: the goal seeker would fly forward while turning.
-    rig.start_vehicle("--airborne", "--start", "0,0,-3")
-    rig.start_companion(make_policy(tmp / "policy.pt"), "--goal", "6,-6,-3", "--arm", "--takeoff", "3",
-                        "--face-goal", "4", "--exit-on-arrival", "--timeout", "60")
+    rig.start_vehicle("--airborne", "--start", "0,0,-3")  # facing north
+    rig.start_companion(make_policy(tmp / "policy.pt"), "--arm", "--takeoff", "3", "--face-goal", "4",
+                        "--exit-on-arrival", "--timeout", "60")
 
 
 @pytest.fixture(scope="module")
@@ -336,26 +335,41 @@ def test_the_governor_takes_a_policy_that_never_brakes_round_a_pole(rigs):
 
 @scenario("face_goal")
 def test_face_goal_turns_in_place_before_the_policy_flies(rigs):
-    """``--face-goal 4``: for 4 s from engaging the companion holds position and turns left towards a goal 45 deg
-    off (the policy runs, its forward command is held back), logs the start and the end of the turn, then the
-    policy flies, facing the goal, and arrives."""
+    """``--face-goal 4``: from the goal's arrival the companion holds its point and turns left towards a goal 45 deg
+    off for 4 s (the policy runs, its forward command held back; a copy of the same goal 1.5 s later does not
+    restart the hold), logs the start and the end of the turn, then the policy flies, facing the goal, and arrives."""
     rig = rigs["face_goal"]
-    code = rig.wait_companion(60)
-    rig.procs.stop_all()
+    gcs = GroundStation(rig.gcs_port)
+    try:
+        rig.wait_for_event(lambda r: r.get("kind") == "step" and (r.get("hold") or "").startswith("no goal"),
+                           60, "a hold for want of a goal")
+        gcs.wait_heartbeat()
+        gcs.send_goal(6.0, -6.0, -3.0)  # ahead on the left: the goal seeker would fly forward while turning
+        time.sleep(1.5)
+        gcs.send_goal(6.0, -6.0, -3.0)  # a copy, as ground stations resend
+        code = rig.wait_companion(60)
+    finally:
+        gcs.close()
+        rig.procs.stop_all()
     assert code == 0, rig.procs.stderr("companion")[-3000:]
-    start, end = _events(rig, "face_goal")[-2:]
+    first_goal, copy = _events(rig, "goal")
+    assert copy["mono"] - first_goal["mono"] > 1.0
+    setting, start, end = _events(rig, "face_goal")  # what flies (logged at start-up), then the turn
+    assert setting["hold_s"] == 4.0 and "face the goal first" in setting["message"]
     assert "turning to face the goal" in start["message"] and start["bearing_deg"] == pytest.approx(-45.0, abs=3.0)
     assert "facing the goal" in end["message"] and abs(end["bearing_deg"]) < 5.0
     facing = [s for s in _steps(rig) if s.get("face_goal_s") is not None]
     assert facing and all(s["cmd"][0] == 0.0 and s["cmd"][1] == 0.0 for s in facing)
-    assert facing[0]["cmd"][2] == pytest.approx(-0.5)  # left, at the policy's yaw limit
+    assert facing[0]["cmd"][2] == pytest.approx(-0.5)  # left, at the policy's yaw limit (logged as the simulator flies it)
     assert any(s["policy"][0] > 0.1 for s in facing)  # what the hold replaced
-    assert facing[-1]["mono"] - facing[0]["mono"] == pytest.approx(4.0, abs=0.3)
+    assert end["mono"] - first_goal["mono"] == pytest.approx(4.0, abs=0.3)  # from the first copy
+    # the autopilot got the point where the turn started as a position target, and held it
+    assert all(s["hold_point_ned"] == facing[0]["hold_point_ned"] for s in facing)
     moved = np.linalg.norm(np.subtract(facing[-1]["pos_ned"], facing[0]["pos_ned"]))
     assert moved < 0.3, moved
-    flying = [s for s in _steps(rig) if s["phase"] == "flying_to_goal" and s.get("face_goal_s") is None
-              and s.get("policy_step", True) and s["mono"] > facing[-1]["mono"] and s["cmd"] is not None]
-    assert flying and flying[0]["cmd"][0] > 0.1
+    flying = [s for s in _steps(rig) if s["phase"] == "flying_to_goal" and s["mono"] > end["mono"]
+              and s.get("policy") is not None]
+    assert flying and flying[0]["cmd"][0] > 0.1 and flying[0]["hold_point_ned"] is None
     (arrived,) = _events(rig, "arrived")
     assert arrived["dist_m"] <= 0.5
 
