@@ -19,6 +19,7 @@ failsafe stops it, within 4 m with the parameters the docs recommend (ArduPilot
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import time
@@ -90,11 +91,25 @@ def test_one_vehicle_takes_off_flies_to_its_goal_and_lands(autopilot, tmp_path):
 
 @pytest.mark.timeout(600)
 def test_a_circle_of_four_through_the_world_arrives_without_collisions(autopilot, tmp_path):
+    """Four vehicles spawned facing north, goals sent together, each companion with ``--face-goal``: each turns to
+    face its goal holding its point and altitude, they start together, arrive, and no pair comes closer than 2R."""
     kind, binary = autopilot
     summary = fly_circle(kind, binary, 4, tmp_path, radius_m=10.0, altitude_m=8.0, rotation_deg=22.5,
-                         time_limit_s=60.0, ready_timeout_s=READY_TIMEOUT_S, status=lambda _text: None)
+                         time_limit_s=60.0, ready_timeout_s=READY_TIMEOUT_S, status=lambda _text: None,
+                         face_goal_s=8.0)
     assert summary["arrived"] == 4, summary
     assert summary["collisions"] == 0, summary
+    assert summary["goals_sent_within_s"] < 0.5, summary
+    starts, alts = [], []
+    for i in range(4):
+        records = [json.loads(line) for line in (tmp_path / f"companion_{i}.jsonl").read_text().splitlines()]
+        (end,) = [r for r in records if r.get("event") == "face_goal" and "facing the goal" in r.get("message", "")]
+        assert abs(end["bearing_deg"]) < 10.0, end  # facing its goal when the policy takes over
+        starts.append(end["t"])
+        facing = [r for r in records if r.get("kind") == "step" and r.get("face_goal_s") is not None]
+        alts.append([-r["pos_ned"][2] for r in facing])
+    assert max(starts) - min(starts) < 1.0, starts  # flying together
+    assert all(max(a) - min(a) < 1.0 for a in alts), alts  # the position target held the altitude during the turn
 
 
 @pytest.mark.timeout(420)
