@@ -285,3 +285,23 @@ def test_flown_protocol_writes_cells_table_and_plot_and_resumes(tmp_path, capsys
         with pytest.raises(SystemExit) as exc:
             main(["flown", *bad])
         assert exc.value.code == 2
+
+
+def test_velocity_lag_max_widens_training_dynamics_only():
+    """``--velocity-lag-max-s``: training worlds draw horizontal and vertical velocity lags up to it (PX4 SIH's slower
+    response); validation and tests fly the nominal vehicle; a value outside (0.15, 5] s is refused."""
+    import dataclasses
+
+    from sitl.learn.config import TrainConfig, make_sim_config
+
+    cfg = TrainConfig(preset="flown-fast", geometry="flown", scenario="mixed", randomize_dynamics=True,
+                      velocity_lag_max_s=1.6)
+    train = make_sim_config(cfg, 1).dynamics_randomization
+    assert train.tau_horizontal_s == train.tau_vertical_s == (KinematicRandomization().tau_horizontal_s[0], 1.6)
+    assert train.tau_yaw_s == KinematicRandomization().tau_yaw_s  # the yaw response is left as it was
+    assert make_sim_config(cfg, 1, scenario_name="circle").dynamics_randomization is None
+    default = make_sim_config(dataclasses.replace(cfg, velocity_lag_max_s=0.0), 1).dynamics_randomization
+    assert default == KinematicRandomization()
+    for bad in (0.1, 9.0):
+        with pytest.raises(ValueError, match="velocity_lag_max_s must be 0"):
+            TrainConfig(velocity_lag_max_s=bad)

@@ -234,3 +234,23 @@ def test_the_command_line_refuses_a_model_the_companions_would_refuse_before_sta
         assert "--model: cannot use the model:" in line and str(bad) in line
     assert not (tmp_path / "run").exists()
     assert DEFAULT_POLICY.name == "policy.pt" and DEFAULT_POLICY.parent.name == "models" and DEFAULT_POLICY.is_file()
+
+
+def test_autopilot_nice_lowers_only_the_autopilots_priority(tmp_path):
+    """``--autopilot-nice N``: the autopilots' command lines run under ``nice -n N``; 0 leaves them as they are."""
+    swarm = RealSwarm(PX4, tmp_path / "px4", np.zeros((1, 2)), tmp_path / "run", autopilot_nice=10)
+    assert swarm._niced(["px4", "-i", "0"]) == ["nice", "-n", "10", "px4", "-i", "0"]
+    plain = RealSwarm(PX4, tmp_path / "px4", np.zeros((1, 2)), tmp_path / "run2")
+    assert plain._niced(["px4"]) == ["px4"]
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--autopilot-nice", "25"], "--autopilot-nice"), (["--face-goal", "0"], "--face-goal must be seconds")])
+def test_circle_options_refuse_bad_values_in_one_line(argv, message, tmp_path):
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-m", "sitl.real_autopilots", "circle", "--autopilot", "px4", "--out",
+                           str(tmp_path / "run"), *argv], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2
+    assert message in done.stderr and "Traceback" not in done.stderr

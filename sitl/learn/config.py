@@ -106,6 +106,9 @@ class TrainConfig:
                                     "(e.g. large,small; validation and tests fly their own density); empty: --density")
     randomize_dynamics: bool = _param(False, "draw each UAV's velocity lag and acceleration limits per episode "
                                              "(sitl.sim.dynamics.KinematicRandomization)")
+    velocity_lag_max_s: float = _param(0.0, "with --randomize-dynamics, training worlds only: the slowest horizontal and "
+                                            "vertical velocity lag drawn, seconds (PX4 SIH responds with ~1.1-1.6 s; "
+                                            "docs/real_autopilots.md); 0: KinematicRandomization's own range")
     yaw_jitter_deg: float = _param(45.0, "random scenario: initial heading error from the goal bearing, up to +-deg")
     arrival_radius_m: float = _param(DEFAULT_TASK_SPEC.arrival_radius_m,
                                      "distance to the goal that counts as arrival (paper: 0.5 m)")
@@ -245,6 +248,9 @@ class TrainConfig:
                              f"choose one of {', '.join(EDGE_HOLE_MODELS)}")
         if self.geometry not in GEOMETRIES:
             raise ValueError(f"unknown geometry {self.geometry!r}; choose one of {', '.join(GEOMETRIES)}")
+        if self.velocity_lag_max_s and not (KinematicRandomization().tau_horizontal_s[0] < self.velocity_lag_max_s <= 5.0):
+            raise ValueError(f"velocity_lag_max_s must be 0 (the default range) or in "
+                             f"({KinematicRandomization().tau_horizontal_s[0]:g}, 5] s, got {self.velocity_lag_max_s}")
         # The scenario checks low_floor_fraction (its range, and a floor drawn per episode): here, so a
         # bad flag fails before the run starts.
         scenario = scenario_for(self.geometry, "random", low_floor_fraction=self.low_floor_fraction,
@@ -556,7 +562,12 @@ def make_sim_config(cfg: TrainConfig, num_worlds: int, record_paths: bool = Fals
         values["density_range"] = parse_density_range(cfg.density_range)
     scenario = scenario_for(cfg.geometry, name, **values)
     camera = training_camera(cfg)
-    randomization = KinematicRandomization() if cfg.randomize_dynamics and training else None
+    randomization = None
+    if cfg.randomize_dynamics and training:
+        randomization = KinematicRandomization()
+        if cfg.velocity_lag_max_s > 0:
+            lag = (randomization.tau_horizontal_s[0], cfg.velocity_lag_max_s)
+            randomization = dataclasses.replace(randomization, tau_horizontal_s=lag, tau_vertical_s=lag)
     return SimConfig(num_uavs=cfg.num_uavs, num_worlds=num_worlds, scenario=scenario, camera=camera,
                      dynamics_randomization=randomization,
                      camera_noise=dataclasses.replace(TRAINING_STEREO_NOISE, min_range_m=camera.min_range_m,

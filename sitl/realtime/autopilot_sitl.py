@@ -163,7 +163,8 @@ class RealSwarm:
 
     def __init__(self, kind: str, binary: Path, spawns_ne: np.ndarray, out: Path,
                  home: tuple[float, float, float] | None = None, params: dict[str, float] | None = None,
-                 camera_hz: float = 30.0, policy: Path = DEFAULT_POLICY, camera: str | None = None) -> None:
+                 camera_hz: float = 30.0, policy: Path = DEFAULT_POLICY, camera: str | None = None,
+                 autopilot_nice: int = 0) -> None:
         if kind not in KINDS:
             raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
         self.kind, self.binary, self.out = kind, Path(binary), Path(out)
@@ -173,6 +174,9 @@ class RealSwarm:
         self.params = dict(params or {})
         self.camera_hz = camera_hz
         self.policy, self.camera = Path(policy), camera
+        # > 0: the autopilots run at a lower CPU priority than the companions and the world (on a real vehicle each
+        # has its own processor; on one small machine they compete, and a companion that misses its tick holds)
+        self.autopilot_nice = autopilot_nice
         self.out.mkdir(parents=True, exist_ok=True)
         self.procs = Children()
         self.offsets: np.ndarray | None = None  # each vehicle's local origin in the world frame, from the world
@@ -222,7 +226,7 @@ class RealSwarm:
                 argv = [str(self.binary), "-w", "--model", "+", "--speedup", "1", "-I", str(i),
                         "--sysid", str(i + 1), "--home", f"{lat:.8f},{lon:.8f},{alt:.1f},0",
                         "--defaults", ",".join(str(d) for d in defaults)]
-                self._start(f"autopilot_{i}", argv, cwd=folder)
+                self._start(f"autopilot_{i}", self._niced(argv), cwd=folder)
             else:
                 env = {"PX4_SYS_AUTOSTART": PX4_SIH_AUTOSTART, "PX4_SIM_MODEL": "sihsim_quadx",
                        "PX4_SIMULATOR": "sihsim", "PX4_HOME_LAT": f"{lat:.8f}", "PX4_HOME_LON": f"{lon:.8f}",
@@ -231,7 +235,10 @@ class RealSwarm:
                 env.update({f"PX4_PARAM_{name}": f"{value:g}" for name, value in self.params.items()})
                 etc = self.binary.resolve().parent.parent / "etc"
                 argv = [str(self.binary), "-d", "-i", str(i), "-w", str(folder), str(etc)]
-                self._start(f"autopilot_{i}", argv, env=env)
+                self._start(f"autopilot_{i}", self._niced(argv), env=env)
+
+    def _niced(self, argv: list[str]) -> list[str]:
+        return ["nice", "-n", str(self.autopilot_nice), *argv] if self.autopilot_nice else argv
 
     def _start(self, name: str, argv: list[str], cwd: Path | None = None, env: dict | None = None) -> None:
         self.procs.start(name, argv, self.out / f"{name}.out", cwd=cwd, env=env)
@@ -439,7 +446,8 @@ def pairwise_min_distance(pos: np.ndarray) -> tuple[float, tuple[int, int]]:
 def fly_circle(kind: str, binary: Path, n: int, out: Path, radius_m: float = 12.0, altitude_m: float = 8.0,
                rotation_deg: float = 0.0, time_limit_s: float = 60.0, ready_timeout_s: float = 240.0,
                settle_s: float = 10.0, params: dict[str, float] | None = None, status=print,
-               policy: Path = DEFAULT_POLICY, camera: str | None = None, face_goal_s: float | None = None) -> dict:
+               policy: Path = DEFAULT_POLICY, camera: str | None = None, face_goal_s: float | None = None,
+               autopilot_nice: int = 0) -> dict:
     """A circle of ``n`` vehicles flying to their antipodes together; the measured results.
 
     The vehicles spawn facing north, as SITL spawns them; with ``face_goal_s`` every companion turns to face its goal
@@ -453,7 +461,8 @@ def fly_circle(kind: str, binary: Path, n: int, out: Path, radius_m: float = 12.
     spawns_rel = spawns - spawns[0]  # the world frame is vehicle 0's local frame
     goals = np.concatenate([goals_ne - spawns[0], np.full((n, 1), -altitude_m)], axis=1)
     started = time.monotonic()
-    with RealSwarm(kind, binary, spawns_rel, out, params=params, policy=policy, camera=camera) as swarm:
+    with RealSwarm(kind, binary, spawns_rel, out, params=params, policy=policy, camera=camera,
+                   autopilot_nice=autopilot_nice) as swarm:
         swarm.start_autopilots()
         swarm.start_world()
         offsets = swarm.wait_tracking(ready_timeout_s)
@@ -492,7 +501,7 @@ def fly_circle(kind: str, binary: Path, n: int, out: Path, radius_m: float = 12.
     summary = _circle_summary(kind, n, radius_m, altitude_m, rotation_deg, tr, goals, offsets, arrived_t, t0,
                               settle_s, ready_s, world_status)
     summary |= {"policy": str(policy), "camera": camera or "the world's default", "face_goal_s": face_goal_s,
-                "goals_sent_within_s": round(float(first_sent_s.max()), 4),
+                "goals_sent_within_s": round(float(first_sent_s.max()), 4), "autopilot_nice": autopilot_nice,
                 "goal_sent_s": np.round(first_sent_s, 4).tolist()}
     write_summary(out, summary)
     return summary
@@ -632,6 +641,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="bearing of vehicle 0's spawn point from the centre (default 0)")
     circle.add_argument("--time-limit", type=positive_float, default=60.0, metavar="S",
                         help="after the goals are sent (default 60 s)")
+    circle.add_argument("--autopilot-nice", type=int_range(0, 19), default=0, metavar="N",
+                        help="run the autopilots at CPU niceness N (default 0): on a small machine, lower than the "
+                             "companions and the world, as each has its own processor on a real vehicle")
     circle.add_argument("--face-goal", nargs="?", const=DEFAULT_FACE_GOAL_S, default=None, type=parse_face_goal_s,
                         metavar="SECONDS", help="every companion turns to face its goal first and flies SECONDS after "
                                                 f"the goals (companion --face-goal; {DEFAULT_FACE_GOAL_S:g} s alone)")
@@ -652,7 +664,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.what == "circle":
             summary = fly_circle(args.autopilot, binary, args.n, args.out, args.radius, args.altitude, args.rotation,
                                  args.time_limit, args.ready_timeout, params=params, status=status,
-                                 policy=args.model, camera=args.camera, face_goal_s=args.face_goal)
+                                 policy=args.model, camera=args.camera, face_goal_s=args.face_goal,
+                                 autopilot_nice=args.autopilot_nice)
         else:
             summary = fly_and_stop(args.autopilot, binary, args.out, getattr(signal, f"SIG{args.signal}"),
                                    args.distance, args.altitude, ready_timeout_s=args.ready_timeout, params=params,

@@ -358,7 +358,8 @@ class DepthBridge:
             self._write_trace(now_s)
 
     def _write_trace(self, now_s: float) -> None:
-        """One ``--trace`` line: per vehicle its world position (None unless placed), velocity, mode, armed.
+        """One ``--trace`` line: per vehicle its world position (None unless placed), velocity, heading (rad from
+        north), mode, armed.
 
         The positions are the autopilots' estimates placed by the layout, as they are drawn: what
         scripts measure arrival, separation and stopping distances with (``sitl.real_autopilots``).
@@ -366,6 +367,7 @@ class DepthBridge:
         placed = [self._placed(v, now_s)[0] for v in self.vehicles]
         self.trace("pose", pos_ned=[None if p is None else p.round(3).tolist() for p in placed],
                    vel_ned=[None if v.vel_ned is None else v.vel_ned.round(3).tolist() for v in self.vehicles],
+                   yaw_rad=[round(v.yaw_rad, 4) for v in self.vehicles],
                    mode=[v.mode for v in self.vehicles], armed=[v.armed for v in self.vehicles])
 
     def receive(self, link: Px4GcsPort | VehicleConnection, now_s: float) -> None:
