@@ -8,8 +8,10 @@ camera's view (docs/results.md "The circle's start heading"). Turning first and 
 turn ends is worse still (0.837 / 0.735): the starts become staggered.
 
 What. For ``hold_s`` seconds after a new goal (or after engaging, whichever is later) the vehicle holds its position
-and turns towards the goal at the policy's own yaw-rate limit (a proportional law on the bearing, ``gain_per_s``,
-clipped); only then do the policy's commands go out. The hold is the same for every vehicle, however far it has to
+and turns towards the goal; only then do the policy's commands go out. The simulator turns it at the policy's own
+yaw-rate limit (a proportional law on the bearing, ``gain_per_s``, clipped: :func:`face_goal_commands`); the
+companion sends the autopilot the same as a position target (the point where the turn started, the heading to the
+goal), because PX4 SIH drifted by metres in altitude on a zero velocity and a yaw rate. The hold is the same for every vehicle, however far it has to
 turn, so vehicles that got their goals together (one mission start) start flying together, each facing its goal:
 the start the policy was trained on, with no communication. The policy keeps running during the hold (its frame
 stack stays fresh); its commands are replaced, not skipped. The simulator's evaluation (``swarm_test --face-goal``)
