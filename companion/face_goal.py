@@ -54,6 +54,12 @@ def goal_bearing_frd_rad(pos_ned: np.ndarray, yaw_rad: np.ndarray, goal_ned: np.
     return np.arctan2(rel_frd[..., 1], rel_frd[..., 0])
 
 
+def goal_heading_rad(pos_ned: np.ndarray, goal_ned: np.ndarray) -> float:
+    """The heading (rad from north) that faces ``goal_ned`` from ``pos_ned`` (NED, [3] each)."""
+    to_goal = np.asarray(goal_ned, dtype=np.float64) - np.asarray(pos_ned, dtype=np.float64)
+    return math.atan2(to_goal[1], to_goal[0])
+
+
 def face_goal_commands(pos_ned: np.ndarray, yaw_rad: np.ndarray, goal_ned: np.ndarray, yaw_rate_limit_rad_s: float,
                        spec: FaceGoalSpec = FaceGoalSpec()) -> np.ndarray:
     """[M, 3] commands ``(vel_fwd_m_s, vel_down_m_s, yaw_rate_rad_s)`` that hold position and turn towards the goal.

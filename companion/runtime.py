@@ -79,7 +79,7 @@ from companion.flight_modes import (
     PX4_MODE_BY_NAME,
     AutopilotKind,
 )
-from companion.face_goal import FaceGoalSpec, face_goal_commands, goal_bearing_frd_rad
+from companion.face_goal import FaceGoalSpec, face_goal_commands, goal_bearing_frd_rad, goal_heading_rad
 from companion.governor import GovernorSpec, SpeedGovernor
 from companion.inference import InferenceWorker
 from companion.observation import DepthFrameStack, RememberedDepth, build_state
@@ -794,8 +794,13 @@ class Companion:
         info["clamped"] = bool(np.any(command != raw))
         if self.config.face_goal is not None:  # the policy ran (its stack stays fresh); its command waits
             facing_s = now - max(self._goal_set_s, self.phase_since_s)
-            bearing_deg = math.degrees(float(goal_bearing_frd_rad(odom.pos_ned, odom.yaw_rad, self.goal_ned)))
-            if facing_s < self.config.face_goal.hold_s:
+            facing = facing_s < self.config.face_goal.hold_s
+            if facing != self._facing:  # the turn starts or ends: say so, with the bearing left
+                bearing_deg = math.degrees(float(goal_bearing_frd_rad(odom.pos_ned, odom.yaw_rad, self.goal_ned)))
+                self._event("face_goal", f"turning to face the goal ({bearing_deg:+.0f} deg off): the policy flies "
+                                         f"{self.config.face_goal.hold_s:g} s after the goal" if facing else
+                            f"facing the goal ({bearing_deg:+.0f} deg off): the policy flies", bearing_deg=bearing_deg)
+            if facing:
                 # What the simulator flies (zero velocity, a yaw rate to the goal) is logged as the command; the
                 # autopilot gets the same as a position target: the point where the turn started and the heading
                 # to the goal, so it holds its altitude while it turns (PX4 drifted by metres on zero velocity
@@ -805,14 +810,8 @@ class Companion:
                 info["face_goal_s"] = facing_s
                 if not self._facing:
                     self._face_hold_ned = np.array(odom.pos_ned, dtype=np.float64)
-                    self._event("face_goal", f"turning to face the goal ({bearing_deg:+.0f} deg off): the policy flies "
-                                             f"{self.config.face_goal.hold_s:g} s after the goal", bearing_deg=bearing_deg)
-                to_goal = self.goal_ned - self._face_hold_ned
-                self._face_target = (self._face_hold_ned, math.atan2(to_goal[1], to_goal[0]))
-            elif self._facing:
-                self._event("face_goal", f"facing the goal ({bearing_deg:+.0f} deg off): the policy flies",
-                            bearing_deg=bearing_deg)
-            self._facing = facing_s < self.config.face_goal.hold_s
+                self._face_target = (self._face_hold_ned, goal_heading_rad(self._face_hold_ned, self.goal_ned))
+            self._facing = facing
         if self.governor is not None:  # on the newest frame the policy saw, as in the simulator's evaluation
             governed, capped, nearest, self._governor_turning = self.governor.apply(
                 self.stack.frames[:, -1], command[None], self._governor_turning)

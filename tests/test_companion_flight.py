@@ -123,6 +123,13 @@ def _events(rig: Rig, name: str) -> list[dict]:
     return [r for r in rig.companion_records() if r["kind"] == "event" and r["event"] == name]
 
 
+def _wait_for_want_of_a_goal(rig: Rig, gcs: GroundStation) -> None:
+    """Until the engaged companion holds for want of a goal and the ground station hears the vehicle."""
+    rig.wait_for_event(lambda r: r.get("kind") == "step" and (r.get("hold") or "").startswith("no goal"),
+                       60, "a hold for want of a goal")
+    gcs.wait_heartbeat()
+
+
 def _final_vehicle_status(rig: Rig, after_t: float, timeout_s: float = 3.0) -> dict:
     """The vehicle's first status line written after ``after_t`` (UNIX time)."""
     deadline = time.monotonic() + timeout_s
@@ -226,9 +233,7 @@ def test_goal_sent_by_the_ground_station_at_run_time(rigs):
     rig = rigs["gcs_goal"]
     gcs = GroundStation(rig.gcs_port)
     try:
-        rig.wait_for_event(lambda r: r.get("kind") == "step" and (r.get("hold") or "").startswith("no goal"),
-                           60, "a hold for want of a goal")
-        gcs.wait_heartbeat()
+        _wait_for_want_of_a_goal(rig, gcs)
         gcs.send_goal(5.0, 2.0, -3.5)
         text = gcs.conn.recv_match(type="STATUSTEXT", blocking=True, timeout=5,
                                    condition="'goal set' in STATUSTEXT.text")
@@ -341,9 +346,7 @@ def test_face_goal_turns_in_place_before_the_policy_flies(rigs):
     rig = rigs["face_goal"]
     gcs = GroundStation(rig.gcs_port)
     try:
-        rig.wait_for_event(lambda r: r.get("kind") == "step" and (r.get("hold") or "").startswith("no goal"),
-                           60, "a hold for want of a goal")
-        gcs.wait_heartbeat()
+        _wait_for_want_of_a_goal(rig, gcs)
         gcs.send_goal(6.0, -6.0, -3.0)  # ahead on the left: the goal seeker would fly forward while turning
         time.sleep(1.5)
         gcs.send_goal(6.0, -6.0, -3.0)  # a copy, as ground stations resend

@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.face_goal import DEFAULT_FACE_GOAL_S, parse_face_goal_s
+from companion.face_goal import DEFAULT_FACE_GOAL_S, add_face_goal_argument
 from companion.flight_modes import (ARDUCOPTER_MODE_BY_NAME, PX4_MODE_BY_NAME)
 from companion.spec import CAMERA_PRESETS, DEFAULT_TASK_SPEC
 from sitl.realtime.depth_bridge import ned_offset_m, shift_global
@@ -644,9 +644,8 @@ def main(argv: list[str] | None = None) -> int:
     circle.add_argument("--autopilot-nice", type=int_range(0, 19), default=0, metavar="N",
                         help="run the autopilots at CPU niceness N (default 0): on a small machine, lower than the "
                              "companions and the world, as each has its own processor on a real vehicle")
-    circle.add_argument("--face-goal", nargs="?", const=DEFAULT_FACE_GOAL_S, default=None, type=parse_face_goal_s,
-                        metavar="SECONDS", help="every companion turns to face its goal first and flies SECONDS after "
-                                                f"the goals (companion --face-goal; {DEFAULT_FACE_GOAL_S:g} s alone)")
+    add_face_goal_argument(circle, help="every companion turns to face its goal first and flies SECONDS after the goals "
+                                        f"(companion --face-goal; {DEFAULT_FACE_GOAL_S:g} s alone)")
     stop.add_argument("--signal", choices=("TERM", "KILL", "INT"), default="TERM")
     stop.add_argument("--distance", type=positive_float, default=30.0, help="goal distance north in metres (default 30)")
     args = parser.parse_args(argv)
