@@ -211,7 +211,11 @@ class Companion:
         self._goal_set_s = -math.inf  # when the goal last changed (--face-goal's hold counts from it or engagement)
         self._facing = False  # --face-goal: turning in place, the policy's commands held back
         # --face-goal: the point and heading held this tick (None: no face-goal target this tick)
-        self._face_target: tuple[np.ndarray, float] | None = None
+        #: This tick's position target (NED point, yaw) instead of a velocity setpoint: set by the phase
+        #: handlers that keep the vehicle on a point (face-goal turn, PX4 takeoff, waiting for a goal).
+        self._point_target: tuple[np.ndarray, float] | None = None
+        #: Where the vehicle keeps station while it has no goal, and where a PX4 takeoff started (NED, yaw).
+        self._station: tuple[np.ndarray, float] | None = None
         self._face_hold_ned: np.ndarray | None = None  # where the current turn in place started
 
         self.phase = FlightPhase.WAITING_FOR_TELEMETRY
@@ -467,7 +471,7 @@ class Companion:
             seconds = self.worker.discarded.pop(0)
             self._event("policy_late", f"discarded a late policy answer (inference took {seconds * 1000:.0f} ms)",
                         level="warning", inference_ms=seconds * 1000.0)
-        self._face_target = None  # set again by this tick's face-goal step only
+        self._point_target = None  # set again by this tick's phase handler only
         command = self._run_phase(now, info)
         sent_s = None
         if command is not None:
@@ -500,7 +504,7 @@ class Companion:
             tick_late_ms=None if late is None else late * 1000.0, period_ms=None if period is None else period * 1000.0,
             extra=extra, stacked=info.get("stacked"), stack_seqs=info.get("stack_seqs"),
             hold_point_ned=None if command is None else (self._hold_point[0] if self._holding_point() else (
-                None if self._face_target is None else self._face_target[0])),
+                None if self._point_target is None else self._point_target[0])),
         )
         if self.recorder is not None and frame is not None and info.get("state") is not None:
             try:
@@ -521,8 +525,8 @@ class Companion:
     def _send(self, command: np.ndarray) -> float:
         if self._holding_point():  # at the goal: hold the point, not a zero velocity that drifts on
             self.link.send_position_target(*self._hold_point)
-        elif self._face_target is not None:  # turning to face the goal: hold the point, turn to the heading
-            self.link.send_position_target(*self._face_target)
+        elif self._point_target is not None:  # keeping a point (turning to the goal, taking off, no goal yet)
+            self.link.send_position_target(*self._point_target)
         else:
             self.link.send_velocity_setpoint(command[0], command[1], command[2])
         sent_s = time.monotonic()
@@ -710,9 +714,18 @@ class Companion:
             return np.zeros(3)
         altitude_error_m = target - (-odom.pos_ned[2])
         if abs(altitude_error_m) < 0.2:
+            self._station = None  # the next phase keeps its own point
             self._next_in_sequence(now, f"reached {-odom.pos_ned[2]:.1f} m")
             return np.zeros(3)
-        # Climb in OFFBOARD with the policy's own vertical bound (a P law on altitude).
+        # Climb in OFFBOARD at the policy's own vertical bound, straight above the point where the takeoff
+        # started: a position target that rises at that rate (velocity setpoints alone let PX4 SIH drift by
+        # up to 3.2 m on the way up to 8 m). The velocity logged is the climb the target asks for.
+        if self._station is None:
+            self._station = (np.array(odom.pos_ned, dtype=np.float64), float(odom.yaw_rad))
+        start, yaw = self._station
+        climb_m_s = -float(self.low[1])  # the policy's climb bound (down is positive)
+        rise_m = min(climb_m_s * (now - self.phase_since_s), max(target + start[2], 0.0))
+        self._point_target = (np.array([start[0], start[1], start[2] - rise_m]), yaw)
         vel_down = float(np.clip(-1.0 * altitude_error_m, self.low[1], self.high[1]))
         return np.array([0.0, vel_down, 0.0])
 
@@ -720,7 +733,9 @@ class Companion:
         odom = self.link.odometry
         if self.goal_ned is None:
             info["hold"] = "no goal (send one with SET_POSITION_TARGET_LOCAL_NED to component 191)"
+            self._keep_station(now)
             return self._hold(info)
+        self._station = None
         if odom is not None and self.link.odometry_age_s(now) <= self.stale_s:
             dist = float(np.linalg.norm(self.goal_ned - odom.pos_ned))
             info["dist_m"] = dist
@@ -810,7 +825,7 @@ class Companion:
                 info["face_goal_s"] = facing_s
                 if not self._facing:
                     self._face_hold_ned = np.array(odom.pos_ned, dtype=np.float64)
-                self._face_target = (self._face_hold_ned, goal_heading_rad(self._face_hold_ned, self.goal_ned))
+                self._point_target = (self._face_hold_ned, goal_heading_rad(self._face_hold_ned, self.goal_ned))
             self._facing = facing
         if self.governor is not None:  # on the newest frame the policy saw, as in the simulator's evaluation
             governed, capped, nearest, self._governor_turning = self.governor.apply(
@@ -828,6 +843,18 @@ class Companion:
         self._note_hold(info.get("hold"))
         return np.zeros(3)
 
+    def _keep_station(self, now: float) -> None:
+        """No goal yet: hold the point where the wait began (a position target) rather than a zero velocity,
+        on which PX4 drifts (by 1-2 m in 5-8 s on PX4 SIH). Without fresh odometry: zero velocity."""
+        odom = self.link.odometry
+        if odom is None or self.link.odometry_age_s(now) > self.stale_s:
+            return
+        if self._station is None:
+            self._station = (np.array(odom.pos_ned, dtype=np.float64), float(odom.yaw_rad))
+            self._event("station", f"no goal: holding the point {np.round(self._station[0], 2).tolist()} until one "
+                                   "arrives", hold_point_ned=self._station[0])
+        self._point_target = self._station
+
     def _note_hold(self, reason: str | None) -> None:
         """Log failsafe holds when they start, change reason, and end (not every step)."""
         kind = None if reason is None else reason.split(" (")[0].split(":")[0]
@@ -836,7 +863,8 @@ class Companion:
             if reason is None:
                 self._event("failsafe", "failsafe cleared: the policy flies again", cleared=True)
             else:
-                self._event("failsafe", f"HOLD (zero velocity): {reason}", level="warning", reason=reason)
+                what = "zero velocity" if self._point_target is None else "position hold"
+                self._event("failsafe", f"HOLD ({what}): {reason}", level="warning", reason=reason)
         self._last_hold_reason = reason
 
     def _arrive(self, now: float, dist: float, info: dict) -> np.ndarray | None:

@@ -165,6 +165,14 @@ def test_px4_flies_15_m_to_its_goal_with_systemd_notify_and_a_recording(rigs):
     steps = _steps(rig)
     sent = np.array([s["cmd"] for s in steps if s["sent"]])
     assert len(sent) > 50 and np.all(sent >= LOW - 1e-6) and np.all(sent <= HIGH + 1e-6)
+    # The takeoff climbed straight above where it started: a position target that rises to 2 m at the
+    # policy's climb bound (velocity setpoints alone let PX4 SIH drift by metres on the way up).
+    climb = [s for s in steps if s["phase"] == "taking_off" and s["hold_point_ned"] is not None]
+    assert len(climb) > 10
+    points = np.array([s["hold_point_ned"] for s in climb])
+    assert np.allclose(points[:, :2], points[0, :2]) and np.linalg.norm(points[0, :2] - climb[0]["pos_ned"][:2]) < 0.1
+    assert np.all(np.diff(points[:, 2]) <= 1e-9) and points[-1, 2] >= -2.0 - 1e-9
+    assert np.max(np.diff(points[:, 2]) / np.maximum(np.diff([s["mono"] for s in climb]), 1e-3)) >= -0.5 - 0.05
     holds = [s["hold"] for s in steps if s["phase"] == "flying_to_goal" and s["hold"]]
     # A hold on stale inputs is the failsafe doing its job when the vehicle process itself was
     # starved of CPU (a loaded CI machine runs all the scenarios' processes at once): tolerated
@@ -245,6 +253,14 @@ def test_goal_sent_by_the_ground_station_at_run_time(rigs):
     assert code == 0, rig.procs.stderr("companion")[-3000:]
     (goal,) = _events(rig, "goal")
     assert goal["goal_ned"] == [5.0, 2.0, -3.5] and goal["sender"] == [255, 190]
+    # Until the goal came, the vehicle kept the point where the wait began (a position target, not a zero
+    # velocity on which PX4 drifts), and said so once.
+    (station,) = _events(rig, "station")
+    waiting = [s for s in _steps(rig) if (s.get("hold") or "").startswith("no goal")]
+    assert waiting and all(s["hold_point_ned"] == station["hold_point_ned"] for s in waiting)
+    assert np.linalg.norm(np.subtract(station["hold_point_ned"], [0.0, 0.0, -3.0])) < 0.3
+    (failsafe,) = [e for e in _events(rig, "failsafe") if "no goal" in e["message"]]
+    assert failsafe["message"].startswith("HOLD (position hold)")
     (arrived,) = _events(rig, "arrived")
     assert arrived["dist_m"] <= 0.5
 

@@ -500,6 +500,11 @@ def fly_circle(kind: str, binary: Path, n: int, out: Path, radius_m: float = 12.
         world_status = [r for r in JsonLinesTail(swarm.world_log).read() if r.get("event") == "world_status"]
     summary = _circle_summary(kind, n, radius_m, altitude_m, rotation_deg, tr, goals, offsets, arrived_t, t0,
                               settle_s, ready_s, world_status)
+    # Where each vehicle stood when the goals went out: how far from its point on the ring (the takeoff's and
+    # the wait's drift), and how high.
+    at_goals = tr.pos[0] if len(tr.t) else np.full((n, 3), math.nan)
+    summary |= {"start_offset_m": np.round(np.linalg.norm(at_goals[:, :2] - spawns_rel, axis=1), 2).tolist(),
+                "start_altitude_m": np.round(-at_goals[:, 2], 2).tolist()}
     summary |= {"policy": str(policy), "camera": camera or "the world's default", "face_goal_s": face_goal_s,
                 "goals_sent_within_s": round(float(first_sent_s.max()), 4), "autopilot_nice": autopilot_nice,
                 "goal_sent_s": np.round(first_sent_s, 4).tolist()}

@@ -6,6 +6,15 @@ approaches it with time constant ``tau`` while its acceleration is capped (horiz
 vertical separately), as PX4's ``MPC_ACC_HOR`` / ``MPC_ACC_UP_MAX`` do. Velocity lives in
 NED, so a UAV that turns keeps part of its old velocity for a moment — it slides through
 turns as a real multicopter does. Yaw rate follows the same law with its own limits.
+
+Optionally the horizontal loop is a PI controller flying against linear air drag, which is how
+PX4's velocity controller (P, I on the velocity error) meets a real airframe: with drag
+``kd`` (1/s) and integral gain ``ki`` (1/s^2), the acceleration is
+``clip((v_cmd - v) / tau + ki z) - kd v`` with ``z`` the integrated error (frozen while the
+controller output is capped). A step then gets only ``1 / (1 + kd tau)`` of the commanded speed
+quickly and the rest slowly, as the integrator builds up (time constant ~``(1/tau + kd) / ki``).
+PX4 SIH's default airframe flies like this (fit in docs/real_autopilots.md); ``kd = ki = 0``
+(the default) is the plain lag.
 Integration is explicit Euler on ``substep_s`` sub-steps of each control period.
 
 Every UAV has its own response (arrays in the backend): nominal :class:`KinematicParams` by
@@ -34,6 +43,8 @@ class KinematicParams:
     max_acc_horizontal_m_s2: float = 3.0
     max_acc_vertical_m_s2: float = 2.0
     max_yaw_acc_rad_s2: float = 3.0
+    drag_horizontal_per_s: float = 0.0  # linear air drag over mass, 1/s (0: none)
+    integral_horizontal_per_s2: float = 0.0  # the velocity loop's integral gain, 1/s^2 (0: none)
     substep_s: float = 0.02
 
 
@@ -54,18 +65,25 @@ class KinematicRandomization:
     max_acc_horizontal_m_s2: tuple[float, float] = (2.0, 5.0)
     max_acc_vertical_m_s2: tuple[float, float] = (1.0, 4.0)
     max_yaw_acc_rad_s2: tuple[float, float] = (2.0, 4.0)
+    drag_horizontal_per_s: tuple[float, float] = (0.0, 0.0)
+    integral_horizontal_per_s2: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
         for name in _RESPONSE_FIELDS:
             lo, hi = getattr(self, name)
-            if not 0.0 < lo <= hi < 1000.0:
-                raise ValueError(f"{name} must be (low, high) with 0 < low <= high, got {(lo, hi)}")
+            may_be_zero = name in _MAY_BE_ZERO
+            if not ((lo >= 0.0) if may_be_zero else (lo > 0.0)) or not lo <= hi < 1000.0:
+                least = "0 <= low" if may_be_zero else "0 < low"
+                raise ValueError(f"{name} must be (low, high) with {least} <= high, got {(lo, hi)}")
             object.__setattr__(self, name, (float(lo), float(hi)))
 
 
 #: The per-UAV response fields shared by KinematicParams and KinematicRandomization.
 _RESPONSE_FIELDS = ("tau_horizontal_s", "tau_vertical_s", "tau_yaw_s", "max_acc_horizontal_m_s2",
-                    "max_acc_vertical_m_s2", "max_yaw_acc_rad_s2")
+                    "max_acc_vertical_m_s2", "max_yaw_acc_rad_s2", "drag_horizontal_per_s",
+                    "integral_horizontal_per_s2")
+#: The fields that may be 0 (off); the others are time constants and limits, > 0.
+_MAY_BE_ZERO = ("drag_horizontal_per_s", "integral_horizontal_per_s2")
 
 
 class KinematicDynamics(Dynamics):
@@ -76,6 +94,8 @@ class KinematicDynamics(Dynamics):
         self.params = params
         #: [M] per-UAV response, one array per field of _RESPONSE_FIELDS (nominal: ``params``).
         self.response = {name: np.full(num_uavs, float(getattr(params, name))) for name in _RESPONSE_FIELDS}
+        #: [M, 2] the horizontal velocity loop's integrated error (NED, m/s * s); used when its gain is > 0.
+        self.vel_error_int_ne = np.zeros((num_uavs, 2))
 
     def randomize(self, index: np.ndarray, ranges: KinematicRandomization | None, rng: np.random.Generator) -> None:
         """Draw the response of UAVs ``index`` from ``ranges`` (None: back to the nominal ``params``)."""
@@ -91,12 +111,13 @@ class KinematicDynamics(Dynamics):
         self.yaw_rad[index] = yaw_rad
         self.vel_ned[index] = 0.0
         self.yaw_rate_rad_s[index] = 0.0
+        self.vel_error_int_ne[index] = 0.0
 
     def step(self, cmd_frd: np.ndarray, dt_s: float, active: np.ndarray) -> None:
         p = self.params
         n_sub = max(1, int(round(dt_s / p.substep_s)))
         _integrate(
-            self.pos_ned, self.vel_ned, self.yaw_rad, self.yaw_rate_rad_s,
+            self.pos_ned, self.vel_ned, self.yaw_rad, self.yaw_rate_rad_s, self.vel_error_int_ne,
             np.ascontiguousarray(cmd_frd, dtype=np.float64), np.ascontiguousarray(active, dtype=np.bool_),
             dt_s / n_sub, n_sub,
             *(self.response[name] for name in _RESPONSE_FIELDS),
@@ -104,24 +125,33 @@ class KinematicDynamics(Dynamics):
 
 
 @numba.njit(cache=True)
-def _integrate(pos, vel, yaw, yaw_rate, cmd, active, h, n_sub, tau_h_a, tau_v_a, tau_yaw_a, acc_h_a, acc_v_a, acc_yaw_a):
+def _integrate(pos, vel, yaw, yaw_rate, err_int, cmd, active, h, n_sub, tau_h_a, tau_v_a, tau_yaw_a, acc_h_a, acc_v_a,
+               acc_yaw_a, drag_a, ki_a):
     for m in range(pos.shape[0]):
         if not active[m]:
             continue
         tau_h, tau_v, tau_yaw = tau_h_a[m], tau_v_a[m], tau_yaw_a[m]
         acc_h, acc_v, acc_yaw = acc_h_a[m], acc_v_a[m], acc_yaw_a[m]
+        drag, ki = drag_a[m], ki_a[m]
         for _ in range(n_sub):
             c = math.cos(yaw[m])
             s = math.sin(yaw[m])
             # Desired NED velocity: the body command rotated by the current heading.
             target_n = c * cmd[m, 0]
             target_e = s * cmd[m, 0]
-            acc_n = (target_n - vel[m, 0]) / tau_h
-            acc_e = (target_e - vel[m, 1]) / tau_h
+            err_n = target_n - vel[m, 0]
+            err_e = target_e - vel[m, 1]
+            acc_n = err_n / tau_h + ki * err_int[m, 0]
+            acc_e = err_e / tau_h + ki * err_int[m, 1]
             norm = math.sqrt(acc_n * acc_n + acc_e * acc_e)
             if norm > acc_h:
                 acc_n *= acc_h / norm
                 acc_e *= acc_h / norm
+            elif ki > 0.0:  # anti-windup: the integrator runs only while the output is not capped
+                err_int[m, 0] += err_n * h
+                err_int[m, 1] += err_e * h
+            acc_n -= drag * vel[m, 0]  # air drag acts outside the controller's cap
+            acc_e -= drag * vel[m, 1]
             acc_d = min(max((cmd[m, 1] - vel[m, 2]) / tau_v, -acc_v), acc_v)
             yaw_acc = min(max((cmd[m, 2] - yaw_rate[m]) / tau_yaw, -acc_yaw), acc_yaw)
             vel[m, 0] += acc_n * h
