@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from sitl.eval.cli import main
+from sitl.eval.flown import flown_cells
 from sitl.sim.collision import distance_to_obstacles_m
 from sitl.sim.config import (FLOWN_ALTITUDE_RANGE_M, OBSTACLE_SCENE_DENSITY, ScenarioConfig, SimConfig,
                              scenario_for)
@@ -247,6 +248,55 @@ def test_dynamics_randomization_draws_per_uav_and_episode():
         KinematicRandomization(tau_vertical_s=(0.5, 0.1))
 
 
+def test_circle_scatter_moves_starts_horizontally_within_its_disc_and_keeps_them_apart():
+    """``circle-n8-scatter``: each start lies within the scatter disc (plus the usual jitter) of its point on the ring,
+    at the ring's altitude, no two closer than the minimum separation, the goals at the nominal antipodes; without
+    scatter the circle draws exactly what it drew before."""
+    from sitl.sim.config import FLOWN_CIRCLE_SCATTER_M
+
+    cfg = scenario_for("flown", "circle", circle_scatter_m=FLOWN_CIRCLE_SCATTER_M)
+    plain = scenario_for("flown", "circle")
+    offsets = []
+    for seed in range(200):
+        s, p = sample_circle(8, cfg, np.random.default_rng(seed)), sample_circle(8, plain, np.random.default_rng(seed))
+        np.testing.assert_allclose(s.goal_ned, p.goal_ned)  # the same ring and goals
+        off = np.linalg.norm((s.start_ned - p.start_ned)[:, :2], axis=1)
+        assert np.all(off <= FLOWN_CIRCLE_SCATTER_M + 1e-9) and np.allclose(s.start_ned[:, 2], p.start_ned[:, 2])
+        assert min(np.linalg.norm(a - b) for a, b in combinations(s.start_ned, 2)) >= cfg.min_separation_m - 1e-9
+        offsets += off.tolist()
+    assert 1.7 < np.mean(offsets) < 2.3  # a uniform disc of 3 m: mean offset 2 m
+    cells = {c.name: c for c in flown_cells(episodes=1, jsbsim=False)}
+    assert cells["circle-n8-scatter"].settings.scenario.circle_scatter_m == FLOWN_CIRCLE_SCATTER_M
+    assert cells["circle-n8"].settings.scenario.circle_scatter_m == 0.0
+
+
+def test_pi_loop_against_drag_falls_short_then_catches_up():
+    """The optional PX4-like response: a PI velocity loop against linear drag gets only 1 / (1 + kd tau) of a step
+    quickly, then its integrator brings the rest; without the integrator the shortfall stays; kd = ki = 0 is the
+    plain lag. The integrator starts from zero at every reset."""
+    from sitl.sim.dynamics import KinematicParams
+
+    def speeds(**response) -> dict[float, float]:
+        d = KinematicDynamics(1, KinematicParams(tau_horizontal_s=1 / 1.2, **response))
+        d.reset(np.arange(1), np.array([[0.0, 0.0, -10.0]]), np.zeros(1))
+        out = {}
+        for k in range(1, 201):
+            d.step(np.array([[2.0, 0.0, 0.0]]), 0.1, np.ones(1, dtype=bool))
+            out[round(k * 0.1, 1)] = float(d.vel_ned[0, 0])
+        d.reset(np.arange(1), np.zeros((1, 3)), np.zeros(1))
+        assert np.all(d.vel_error_int_ne == 0.0)
+        return out
+
+    plain, drag_only = speeds(), speeds(drag_horizontal_per_s=0.5)
+    px4_sih = speeds(drag_horizontal_per_s=0.5, integral_horizontal_per_s2=0.2)  # docs/real_autopilots.md's fit
+    assert plain[3.0] > 1.9 and plain[20.0] == pytest.approx(2.0, abs=1e-6)
+    assert drag_only[20.0] == pytest.approx(2.0 / (1 + 0.5 / 1.2), abs=0.01)  # the shortfall stays
+    assert 1.1 < px4_sih[1.0] < 1.4 and px4_sih[3.0] < 1.7 and px4_sih[20.0] > 1.9
+    assert KinematicRandomization(drag_horizontal_per_s=(0.0, 0.0)).drag_horizontal_per_s == (0.0, 0.0)
+    with pytest.raises(ValueError, match="0 <= low <= high"):
+        KinematicRandomization(integral_horizontal_per_s2=(-0.1, 0.2))
+
+
 def test_success_by_goal_altitude_bins():
     def rec(ep, alt, outcome):
         return UAVRecord(ep, 0, [0, 0, -5], [3, 0, -alt], outcome, 3.0, 3.0, 2.0)
@@ -269,14 +319,15 @@ def test_flown_protocol_writes_cells_table_and_plot_and_resumes(tmp_path, capsys
             "--batch", "1"]
     assert main(argv) == 0
     text = (out / "flown.md").read_text()
-    for cell in ("random-small", "random-medium", "random-large", "circle-n8", "circle-n8-common", "obstacles"):
+    for cell in ("random-small", "random-medium", "random-large", "circle-n8", "circle-n8-common", "circle-n8-scatter",
+                 "obstacles"):
         assert f"| {cell} | straight |" in text
     assert "below 3 m" in text and (out / "flown_success.png").stat().st_size > 1000
     data = json.loads((out / "flown.json").read_text())
     assert set(data["cells"]["obstacles"]["results"]["straight"]["by_goal_altitude"]) == {"below 3 m", "3-6 m",
                                                                                          "above 6 m"}
     assert main(argv) == 0
-    assert "0 computed, 6 reused" in capsys.readouterr().out
+    assert "0 computed, 7 reused" in capsys.readouterr().out
     assert main([*argv, "--cells", "obstacles,random-small"]) == 0  # a subset: only those cells, still reused
     printed = capsys.readouterr().out
     assert "0 computed, 2 reused" in printed and "| random-medium |" not in printed

@@ -10,6 +10,10 @@ axis, static obstacles, the camera's noise, and a JSBSim cell. Cells (N = 8 each
 * ``circle-n8-common``: the same circle with the whole swarm facing one heading drawn per episode (as
   a swarm set out on a field faces, and as the PX4 SIH and ArduCopter SITL vehicles of
   ``sitl.real_autopilots`` start: north);
+* ``circle-n8-scatter``: ``circle-n8`` with each start moved horizontally within
+  :data:`FLOWN_CIRCLE_SCATTER_M` of its point on the ring, the goals still at the nominal antipodes (a
+  swarm whose starts are off by GPS errors or a takeoff's drift; how PX4 SIH's circles started before the
+  companion kept station);
 * ``obstacles``: poles, trees and boxes among the UAVs (:data:`OBSTACLE_SCENE_DENSITY`);
 * ``random-medium-jsbsim``: ``random-medium`` on the JSBSim rigid-body backend.
 
@@ -34,7 +38,8 @@ from sitl.eval.evaluate import EvalSettings, evaluate_method
 from sitl.eval.methods import ORCA_BASELINES, Method, file_digest, resolve_method
 from sitl.eval.report import markdown_table, write_json
 from sitl.sim.camera import StereoNoise
-from sitl.sim.config import DENSITIES, FLOWN_ALTITUDE_RANGE_M, OBSTACLE_SCENE_DENSITY, scenario_for
+from sitl.sim.config import (DENSITIES, FLOWN_ALTITUDE_RANGE_M, FLOWN_CIRCLE_SCATTER_M, OBSTACLE_SCENE_DENSITY,
+                             scenario_for)
 from sitl.sim.metrics import GOAL_ALTITUDE_BINS_M, success_by_goal_altitude
 
 #: Episodes per cell: random-scene success differs between controllers by a few points, which
@@ -66,6 +71,8 @@ def flown_cells(episodes: int = DEFAULT_EPISODES, seed: int = 0, camera_noise: b
     cells.append(FlownCell("circle-n8", EvalSettings(scenario=scenario_for("flown", "circle"), **common)))
     cells.append(FlownCell("circle-n8-common", EvalSettings(
         scenario=scenario_for("flown", "circle", circle_heading="common"), **common)))
+    cells.append(FlownCell("circle-n8-scatter", EvalSettings(
+        scenario=scenario_for("flown", "circle", circle_scatter_m=FLOWN_CIRCLE_SCATTER_M), **common)))
     cells.append(FlownCell("obstacles", EvalSettings(
         scenario=scenario_for("flown", "obstacles", density=OBSTACLE_SCENE_DENSITY), **common)))
     if jsbsim:

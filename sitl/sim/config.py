@@ -73,7 +73,11 @@ class ScenarioConfig:
     ``circle_alt_m``, each facing its goal on the opposite side. Each episode rotates the
     formation by a uniform random angle and moves each start by a uniform random offset of
     up to ``circle_jitter_m`` per axis (goals stay exactly antipodal to the nominal starts),
-    so episodes differ even for a deterministic policy. ``circle_heading`` sets where the UAVs
+    so episodes differ even for a deterministic policy. ``circle_scatter_m`` (0 in the paper and
+    in training) moves each start further, horizontally, to a point drawn uniformly in a disc of
+    that radius (redrawn while two starts would come closer than ``min_separation_m``): a swarm
+    whose starts are off by what GPS errors and a takeoff's drift leave, the goals still at the
+    nominal antipodes (``circle-n8-scatter`` in ``swarm_test flown``). ``circle_heading`` sets where the UAVs
     face at the start (:data:`CIRCLE_HEADINGS`): ``goal`` (the paper: each its own goal),
     ``common`` (one heading drawn per episode for the whole swarm, as a swarm set out on a field
     or spawned by an autopilot's SITL faces one way), ``any`` (each UAV its own uniform heading) or,
@@ -115,6 +119,7 @@ class ScenarioConfig:
     circle_radius_m: float = CIRCLE_RADIUS_M
     circle_alt_m: float = 10.0
     circle_jitter_m: float = 0.25
+    circle_scatter_m: float = 0.0  # circle: horizontal start offsets drawn in a disc of this radius (0: none)
     circle_heading: str = "goal"  # circle starts: goal, common, any or mixed (CIRCLE_HEADINGS)
     circle_fraction: float = 0.5
     altitude_range_m: tuple[float, float] | None = None  # random/obstacles: None = fixed floor box_floor_alt_m
@@ -178,6 +183,10 @@ FLOWN_ALTITUDE_RANGE_M = (1.5, 15.0)
 FLOWN_CIRCLE_ALT_RANGE_M = (2.0, 15.0)
 FLOWN_CIRCLE_RADIUS_RANGE_M = (8.0, 20.0)
 FLOWN_START_JITTER_M = 0.5
+#: ``circle-n8-scatter``'s start scatter (disc radius, m): PX4 SIH vehicles stood 0.4-3.3 m from their points on the
+#: ring when their circles started before the companion kept station (docs/real_autopilots.md); GPS without RTK
+#: leaves 1-3 m between vehicles on a field.
+FLOWN_CIRCLE_SCATTER_M = 3.0
 #: ``ScenarioConfig.low_floor_fraction``: a low-floor episode's floor lies within this many metres
 #: above the lowest altitude (medium box 3.2 m tall: ~30 % of its goals then lie below 3 m).
 LOW_FLOOR_BAND_M = 1.0

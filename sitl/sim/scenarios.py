@@ -180,7 +180,24 @@ def sample_circle(num_uavs: int, config: ScenarioConfig, rng: np.random.Generato
     ring[:, 2] = -alt
     goal = ring * np.array([-1.0, -1.0, 1.0])
     start = ring + rng.uniform(-config.circle_jitter_m, config.circle_jitter_m, ring.shape)
+    if config.circle_scatter_m > 0:  # drawn only when asked: other circles consume the generator as before
+        start = _scattered(start, config.circle_scatter_m, config.min_separation_m, rng)
     return ScenarioSample(start, goal, _circle_start_heading(start, goal, config.circle_heading, rng), circle=True)
+
+
+def _scattered(start: np.ndarray, radius_m: float, min_separation_m: float, rng: np.random.Generator,
+               tries: int = 100) -> np.ndarray:
+    """``start`` [N, 3] with each point moved horizontally to a uniform point of a disc of ``radius_m`` around it,
+    redrawn (up to ``tries`` times) while two starts lie closer than ``min_separation_m``."""
+    for _ in range(tries):
+        r = radius_m * np.sqrt(rng.random(len(start)))
+        a = rng.uniform(0.0, 2 * math.pi, len(start))
+        moved = start + np.stack([r * np.cos(a), r * np.sin(a), np.zeros(len(start))], axis=1)
+        gaps = np.linalg.norm(moved[:, None] - moved[None], axis=2) + np.eye(len(start)) * 1e9
+        if gaps.min() >= min_separation_m:
+            return moved
+    raise ValueError(f"cannot scatter {len(start)} circle starts by {radius_m:g} m at least "
+                     f"{min_separation_m:g} m apart in {tries} draws")
 
 
 def _circle_start_heading(start: np.ndarray, goal: np.ndarray, heading: str, rng: np.random.Generator) -> np.ndarray:
