@@ -91,6 +91,9 @@ class TrainConfig:
                                          "own, the paper), common (one heading for the swarm), any (each its own "
                                          "random one) or mixed (one of the three per episode); validation and "
                                          "tests fly their own cells (docs/training.md 'Circle worlds that start on one heading')")
+    circle_scatter_m: float = _param(0.0, "training worlds only: circle starts moved horizontally to a uniform point "
+                                          "within this many metres of the ring, goals at the nominal antipodes "
+                                          "(swarm_test flown's circle-n8-scatter flies 3 m); 0: none")
     geometry: str = _param("paper", "scene geometry: paper (6 m floor, circle at 10 m) or flown (altitudes "
                                     "1.5-15 m, circles 8-20 m at 2-15 m, 0.5 m start jitter; sitl.sim.config)")
     obstacle_fraction: float = _param(0.0, "mixed scenario: probability that an episode is an obstacles episode")
@@ -248,6 +251,8 @@ class TrainConfig:
                              f"choose one of {', '.join(EDGE_HOLE_MODELS)}")
         if self.geometry not in GEOMETRIES:
             raise ValueError(f"unknown geometry {self.geometry!r}; choose one of {', '.join(GEOMETRIES)}")
+        if not 0.0 <= self.circle_scatter_m <= 10.0:
+            raise ValueError(f"circle_scatter_m must be in [0, 10] m, got {self.circle_scatter_m}")
         if self.velocity_lag_max_s and not (KinematicRandomization().tau_horizontal_s[0] < self.velocity_lag_max_s <= 5.0):
             raise ValueError(f"velocity_lag_max_s must be 0 (the default range) or in "
                              f"({KinematicRandomization().tau_horizontal_s[0]:g}, 5] s, got {self.velocity_lag_max_s}")
@@ -558,6 +563,8 @@ def make_sim_config(cfg: TrainConfig, num_worlds: int, record_paths: bool = Fals
         values["low_floor_fraction"] = cfg.low_floor_fraction
     if training and cfg.circle_heading != "goal":
         values["circle_heading"] = cfg.circle_heading
+    if training and cfg.circle_scatter_m > 0:
+        values["circle_scatter_m"] = cfg.circle_scatter_m
     if training and cfg.density_range:
         values["density_range"] = parse_density_range(cfg.density_range)
     scenario = scenario_for(cfg.geometry, name, **values)
