@@ -338,6 +338,18 @@ def test_flown_protocol_writes_cells_table_and_plot_and_resumes(tmp_path, capsys
         assert exc.value.code == 2
 
 
+def test_circle_scatter_reaches_training_worlds_only():
+    """``--circle-scatter-m``: training circles start scattered; validation and tests fly their own cells; a value
+    outside [0, 10] m is refused."""
+    from sitl.learn.config import TrainConfig, make_sim_config
+
+    cfg = TrainConfig(preset="flown-fast", geometry="flown", scenario="mixed", circle_scatter_m=3.0)
+    assert make_sim_config(cfg, 1).scenario.circle_scatter_m == 3.0
+    assert make_sim_config(cfg, 1, scenario_name="circle").scenario.circle_scatter_m == 0.0
+    with pytest.raises(ValueError, match="circle_scatter_m"):
+        TrainConfig(circle_scatter_m=-1.0)
+
+
 def test_velocity_lag_max_widens_training_dynamics_only():
     """``--velocity-lag-max-s``: training worlds draw horizontal and vertical velocity lags up to it (PX4 SIH's slower
     response); validation and tests fly the nominal vehicle; a value outside (0.15, 5] s is refused."""

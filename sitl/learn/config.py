@@ -110,8 +110,9 @@ class TrainConfig:
     randomize_dynamics: bool = _param(False, "draw each UAV's velocity lag and acceleration limits per episode "
                                              "(sitl.sim.dynamics.KinematicRandomization)")
     velocity_lag_max_s: float = _param(0.0, "with --randomize-dynamics, training worlds only: the slowest horizontal and "
-                                            "vertical velocity lag drawn, seconds (PX4 SIH responds with ~1.1-1.6 s; "
-                                            "docs/real_autopilots.md); 0: KinematicRandomization's own range")
+                                            "vertical velocity lag drawn, seconds (a first-order fit to PX4 SIH reads "
+                                            "1.1-1.6 s, though its response is a PI loop against drag: "
+                                            "docs/simulator.md); 0: KinematicRandomization's own range")
     yaw_jitter_deg: float = _param(45.0, "random scenario: initial heading error from the goal bearing, up to +-deg")
     arrival_radius_m: float = _param(DEFAULT_TASK_SPEC.arrival_radius_m,
                                      "distance to the goal that counts as arrival (paper: 0.5 m)")
