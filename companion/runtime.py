@@ -986,9 +986,9 @@ class Companion:
         While streaming: a hold for ``EXIT_HOLD_STREAM_S``, so the last setpoints cannot be the
         ones lost when the link closes — a position target at the goal when holding there,
         otherwise zero velocity (the vehicle stops where its braking takes it, instead of flying
-        back to where the exit began). Then, if the companion flies the vehicle, the stop is
-        awaited and a position target streamed where it stopped until the vehicle has settled
-        on it (:meth:`_settled_at`, at most ``EXIT_SETTLE_MAX_S``); then its hold mode
+        back to where the exit began). Then, if the companion flies the vehicle (ArduPilot; PX4 only
+        at the goal), the stop is awaited and a position target streamed where it stopped (or at the
+        goal) until the vehicle has settled on it (:meth:`_settled_at`, at most ``EXIT_SETTLE_MAX_S``); then its hold mode
         (:data:`HOLD_MODES`) is requested, the hold streamed on until the HEARTBEAT shows it (at
         most ``HAND_OVER_TIMEOUT_S``), and the result reported (log and STATUSTEXT). A pilot's
         takeover is final: then nothing is sent or requested.
@@ -1000,14 +1000,15 @@ class Companion:
         in_control = self._in_control(now)
         # ArduCopter: stop (zero velocity), then hold where it stopped until settled, then BRAKE
         # (EXIT_SETTLE_MAX_S). PX4's AUTO.LOITER brakes from any speed by itself (it holds the
-        # braking point it computes on entry), so PX4 gets a position hold where the vehicle is
-        # and the hand-over at once: on real PX4 SIH that moved 0.75 m after the stop, the settling
-        # sequence 1.35 m.
-        settle = hb.kind is AutopilotKind.ARDUPILOT
+        # braking point it computes on entry), so PX4 stopped on the way gets a position hold where the
+        # vehicle is and the hand-over at once: on real PX4 SIH that moved 0.75 m after the stop, the
+        # settling sequence 1.35 m. At the goal, though, PX4 too settles on the goal first: handed over
+        # at the arrival speed (up to 1.9 m/s), AUTO.LOITER held its braking point 1.65-1.84 m past the goal.
+        settle = hb.kind is AutopilotKind.ARDUPILOT or self._holding_point()
         odom = self.link.odometry
         if self._holding_point():
             point = self._hold_point
-        elif (not settle and odom is not None and self.link.odometry_age_s(now) <= self.stale_s
+        elif (hb.kind is AutopilotKind.PX4 and odom is not None and self.link.odometry_age_s(now) <= self.stale_s
               and self.phase is not FlightPhase.TAKING_OFF):
             point = (odom.pos_ned.copy(), float(odom.yaw_rad))
         else:
