@@ -210,7 +210,6 @@ class Companion:
         self.goal_ned = None if config.goal_ned is None else np.asarray(config.goal_ned, dtype=np.float64)
         self._goal_set_s = -math.inf  # when the goal last changed (--face-goal's hold counts from it or engagement)
         self._facing = False  # --face-goal: turning in place, the policy's commands held back
-        # --face-goal: the point and heading held this tick (None: no face-goal target this tick)
         #: This tick's position target (NED point, yaw) instead of a velocity setpoint: set by the phase
         #: handlers that keep the vehicle on a point (face-goal turn, PX4 takeoff, waiting for a goal).
         self._point_target: tuple[np.ndarray, float] | None = None
