@@ -293,6 +293,12 @@ def test_pi_loop_against_drag_falls_short_then_catches_up():
     assert drag_only[20.0] == pytest.approx(2.0 / (1 + 0.5 / 1.2), abs=0.01)  # the shortfall stays
     assert 1.1 < px4_sih[1.0] < 1.4 and px4_sih[3.0] < 1.7 and px4_sih[20.0] > 1.9
     assert KinematicRandomization(drag_horizontal_per_s=(0.0, 0.0)).drag_horizontal_per_s == (0.0, 0.0)
+    # Off (the default), the option draws nothing: a run consumes its generator as before the option existed.
+    d, rng, ref = KinematicDynamics(8), np.random.default_rng(3), np.random.default_rng(3)
+    d.randomize(np.arange(8), KinematicRandomization(), rng)
+    for _ in range(6):  # the six response fields that were there before
+        ref.uniform(0.0, 1.0, 8)
+    assert rng.random() == ref.random() and np.all(d.response["drag_horizontal_per_s"] == 0.0)
     with pytest.raises(ValueError, match="0 <= low <= high"):
         KinematicRandomization(integral_horizontal_per_s2=(-0.1, 0.2))
 

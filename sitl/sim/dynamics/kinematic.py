@@ -102,8 +102,12 @@ class KinematicDynamics(Dynamics):
         for name in _RESPONSE_FIELDS:
             if ranges is None:
                 self.response[name][index] = getattr(self.params, name)
+                continue
+            lo, hi = getattr(ranges, name)
+            if name in _MAY_BE_ZERO and hi == 0.0:
+                # Off: no draw, so runs without drag consume the generator (and fly the episodes) they did before.
+                self.response[name][index] = 0.0
             else:
-                lo, hi = getattr(ranges, name)
                 self.response[name][index] = rng.uniform(lo, hi, len(index))
 
     def reset(self, index: np.ndarray, pos_ned: np.ndarray, yaw_rad: np.ndarray) -> None:
