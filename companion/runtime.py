@@ -213,8 +213,10 @@ class Companion:
         #: This tick's position target (NED point, yaw) instead of a velocity setpoint: set by the phase
         #: handlers that keep the vehicle on a point (face-goal turn, PX4 takeoff, waiting for a goal).
         self._point_target: tuple[np.ndarray, float] | None = None
-        #: Where the vehicle keeps station while it has no goal, and where a PX4 takeoff started (NED, yaw).
+        #: Where the vehicle keeps station while it has no goal (NED, yaw).
         self._station: tuple[np.ndarray, float] | None = None
+        #: Where a PX4 takeoff started (NED, yaw): the climb goes straight up from it.
+        self._takeoff_from: tuple[np.ndarray, float] | None = None
         self._face_hold_ned: np.ndarray | None = None  # where the current turn in place started
 
         self.phase = FlightPhase.WAITING_FOR_TELEMETRY
@@ -713,15 +715,14 @@ class Companion:
             return np.zeros(3)
         altitude_error_m = target - (-odom.pos_ned[2])
         if abs(altitude_error_m) < 0.2:
-            self._station = None  # the next phase keeps its own point
             self._next_in_sequence(now, f"reached {-odom.pos_ned[2]:.1f} m")
             return np.zeros(3)
         # Climb in OFFBOARD at the policy's own vertical bound, straight above the point where the takeoff
         # started: a position target that rises at that rate (velocity setpoints alone let PX4 SIH drift by
         # up to 3.2 m on the way up to 8 m). The velocity logged is the climb the target asks for.
-        if self._station is None:
-            self._station = (np.array(odom.pos_ned, dtype=np.float64), float(odom.yaw_rad))
-        start, yaw = self._station
+        if self._takeoff_from is None:
+            self._takeoff_from = (np.array(odom.pos_ned, dtype=np.float64), float(odom.yaw_rad))
+        start, yaw = self._takeoff_from
         climb_m_s = -float(self.low[1])  # the policy's climb bound (down is positive)
         rise_m = min(climb_m_s * (now - self.phase_since_s), max(target + start[2], 0.0))
         self._point_target = (np.array([start[0], start[1], start[2] - rise_m]), yaw)

@@ -75,7 +75,7 @@ class ScenarioConfig:
     up to ``circle_jitter_m`` per axis (goals stay exactly antipodal to the nominal starts),
     so episodes differ even for a deterministic policy. ``circle_scatter_m`` (0 in the paper and
     in training) moves each start further, horizontally, to a point drawn uniformly in a disc of
-    that radius (redrawn while two starts would come closer than ``min_separation_m``): a swarm
+    that radius (redrawn while it would come closer than ``min_separation_m`` to another): a swarm
     whose starts are off by what GPS errors and a takeoff's drift leave, the goals still at the
     nominal antipodes (``circle-n8-scatter`` in ``swarm_test flown``). ``circle_heading`` sets where the UAVs
     face at the start (:data:`CIRCLE_HEADINGS`): ``goal`` (the paper: each its own goal),

@@ -89,20 +89,28 @@ def box_floor_alt_m(num_uavs: int, config: ScenarioConfig, rng: np.random.Genera
     return float(rng.uniform(lo, hi - height))
 
 
-def _jitter_starts(start: np.ndarray, config: ScenarioConfig, rng: np.random.Generator, max_tries: int = 50) -> np.ndarray:
+def _jitter_starts(start: np.ndarray, config: ScenarioConfig, rng: np.random.Generator) -> np.ndarray:
     """Each start moved by up to ``start_jitter_m`` per axis, kept ``min_separation_m`` from the others and
     above the lowest altitude (a start whose every try fails stays where it was planned)."""
     if config.start_jitter_m <= 0:
         return start
     lowest_alt = config.altitude_range_m[0] if config.altitude_range_m else 0.0
+    return _moved_apart(start, lambda: rng.uniform(-config.start_jitter_m, config.start_jitter_m, 3),
+                        config.min_separation_m, lowest_alt)
+
+
+def _moved_apart(start: np.ndarray, draw_offset, min_separation_m: float, lowest_alt_m: float = 0.0,
+                 max_tries: int = 50) -> np.ndarray:
+    """Each start moved by an offset from ``draw_offset()`` ([3], NED m), redrawn while it would come closer than
+    ``min_separation_m`` to another start or below ``lowest_alt_m``; a start whose every try fails stays put."""
     out = start.copy()
     for i in range(len(start)):
         for _ in range(max_tries):
-            candidate = start[i] + rng.uniform(-config.start_jitter_m, config.start_jitter_m, 3)
+            candidate = start[i] + draw_offset()
             others = np.delete(out, i, axis=0)
-            if -candidate[2] < lowest_alt:
+            if -candidate[2] < lowest_alt_m:
                 continue
-            if len(others) and np.min(np.linalg.norm(others - candidate, axis=1)) < config.min_separation_m:
+            if len(others) and np.min(np.linalg.norm(others - candidate, axis=1)) < min_separation_m:
                 continue
             out[i] = candidate
             break
@@ -181,23 +189,14 @@ def sample_circle(num_uavs: int, config: ScenarioConfig, rng: np.random.Generato
     goal = ring * np.array([-1.0, -1.0, 1.0])
     start = ring + rng.uniform(-config.circle_jitter_m, config.circle_jitter_m, ring.shape)
     if config.circle_scatter_m > 0:  # drawn only when asked: other circles consume the generator as before
-        start = _scattered(start, config.circle_scatter_m, config.min_separation_m, rng)
+        start = _moved_apart(start, lambda: _disc_offset(config.circle_scatter_m, rng), config.min_separation_m)
     return ScenarioSample(start, goal, _circle_start_heading(start, goal, config.circle_heading, rng), circle=True)
 
 
-def _scattered(start: np.ndarray, radius_m: float, min_separation_m: float, rng: np.random.Generator,
-               tries: int = 100) -> np.ndarray:
-    """``start`` [N, 3] with each point moved horizontally to a uniform point of a disc of ``radius_m`` around it,
-    redrawn (up to ``tries`` times) while two starts lie closer than ``min_separation_m``."""
-    for _ in range(tries):
-        r = radius_m * np.sqrt(rng.random(len(start)))
-        a = rng.uniform(0.0, 2 * math.pi, len(start))
-        moved = start + np.stack([r * np.cos(a), r * np.sin(a), np.zeros(len(start))], axis=1)
-        gaps = np.linalg.norm(moved[:, None] - moved[None], axis=2) + np.eye(len(start)) * 1e9
-        if gaps.min() >= min_separation_m:
-            return moved
-    raise ValueError(f"cannot scatter {len(start)} circle starts by {radius_m:g} m at least "
-                     f"{min_separation_m:g} m apart in {tries} draws")
+def _disc_offset(radius_m: float, rng: np.random.Generator) -> np.ndarray:
+    """A horizontal offset ([3], NED m) drawn uniformly in a disc of ``radius_m``."""
+    r, a = radius_m * math.sqrt(rng.random()), rng.uniform(0.0, 2 * math.pi)
+    return np.array([r * math.cos(a), r * math.sin(a), 0.0])
 
 
 def _circle_start_heading(start: np.ndarray, goal: np.ndarray, heading: str, rng: np.random.Generator) -> np.ndarray:
