@@ -15,7 +15,8 @@ only its depth camera, goal and own velocity), ``straight`` (flies straight at i
 what a scenario gives for free), ``orca`` (ORCA in 3D with perfect knowledge of every
 UAV: the privileged classical reference, :mod:`sitl.eval.orca`), ``orca-fov`` (the same
 ORCA knowing only the UAVs inside its own camera's view: what the field of view allows),
-``orca-fov-right`` (orca-fov keeping right of the UAVs it sees closing in: a right-of-way convention),
+``orca-fov-right`` (orca-fov keeping right of the UAVs it sees closing in: a right-of-way convention; 40 deg),
+``orca-fov-right80`` (the same turning 80 deg: a wider roundabout that also holds when circles start scattered),
 ``orca-fov-memory`` (orca-fov never forgetting a UAV it saw, tracked perfectly: what memory adds) or
 ``orca-fov-look-around`` (orca-fov-memory that also knows every UAV around it at the start: a look around).
 

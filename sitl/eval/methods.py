@@ -177,6 +177,7 @@ def missing_policy_message(path: str | Path) -> str:
             f"then copy it to {DEFAULT_POLICY}) or choose another controller: --policy straight (no avoidance), "
             "--policy orca (privileged ORCA), --policy orca-fov (ORCA knowing only the UAVs in its camera's view), "
             "--policy orca-fov-right (orca-fov keeping right of the UAVs it sees closing in), "
+            "--policy orca-fov-right80 (the same turning 80 instead of 40 deg), "
             "--policy orca-fov-memory (orca-fov never forgetting a UAV it saw), --policy orca-fov-look-around "
             "(orca-fov-memory after a look all around at the start) or --policy PATH (a policy file)")
 

@@ -18,7 +18,7 @@ from companion.governor import GOVERNOR_PRESETS, describe_presets
 from companion.spec import (CAMERA_PRESETS, DEFAULT_TASK_SPEC, MAX_FRAME_STRIDE, MEMORY_MAX_STEPS, CameraSpec,
                             check_frame_ages, memory_for_steps)
 from sitl.cli_args import MAX_THREADS
-from sitl.eval.orca import OrcaParams
+from sitl.eval.orca import RIGHT_HAND_PARAMS, OrcaParams
 from sitl.learn.agent import METHODS, AgentConfig
 from sitl.sim.camera import EDGE_HOLE_MODELS, StereoNoise
 from sitl.sim.config import (CIRCLE_RADIUS_M, GEOMETRIES, LOW_FLOOR_BAND_M, OBSTACLE_SCENE_DENSITY,
@@ -91,8 +91,8 @@ class TrainConfig:
                                          "own, the paper), common (one heading for the swarm), any (each its own "
                                          "random one) or mixed (one of the three per episode); validation and "
                                          "tests fly their own cells (docs/training.md 'Circle worlds that start on one heading')")
-    circle_scatter_m: float = _param(0.0, "training worlds only: circle starts moved horizontally to a uniform point "
-                                          "within this many metres of the ring, goals at the nominal antipodes "
+    circle_scatter_m: float = _param(0.0, "training and validation circles: starts moved horizontally to a uniform "
+                                          "point within this many metres of the ring, goals at the nominal antipodes "
                                           "(swarm_test flown's circle-n8-scatter flies 3 m); 0: none")
     geometry: str = _param("paper", "scene geometry: paper (6 m floor, circle at 10 m) or flown (altitudes "
                                     "1.5-15 m, circles 8-20 m at 2-15 m, 0.5 m start jitter; sitl.sim.config)")
@@ -210,6 +210,10 @@ class TrainConfig:
                                         "right of those closing in (a convention the camera can explain, "
                                         "sitl.eval.orca.RIGHT_HAND_PARAMS) instead of privileged ORCA (distill) or "
                                         "no label (SAC's teacher pull)")
+    circle_teacher_right_deg: float = _param(RIGHT_HAND_PARAMS.right_hand_deg,
+                                             "with circle_teacher_right: how far that teacher turns its preferred "
+                                             "velocity to the right, in degrees (0-90; 80 keeps scattered circles "
+                                             "apart: docs/training.md 'A wider roundabout for scattered circles')")
     teacher_camera_limited: bool = _param(False, "with a teacher (distill, teacher_bc_weight): the worlds other than "
                                           "circles are labelled by ORCA that knows only the UAVs in each UAV's camera "
                                           "view and still sees the obstacles (the camera limited ORCA reference, plus obstacles) "
@@ -316,6 +320,8 @@ class TrainConfig:
             raise ValueError(f"teacher_bc_weight must be in [0, 100], got {self.teacher_bc_weight}")
         if self.memory_outside_view and not self.memory_steps:
             raise ValueError("memory_outside_view needs remembered depth: set memory_steps (e.g. 10)")
+        if not 0.0 <= self.circle_teacher_right_deg <= 90.0:
+            raise ValueError(f"circle_teacher_right_deg must be in [0, 90] degrees, got {self.circle_teacher_right_deg}")
         if self.circle_teacher_right and self.method != "distill" and self.teacher_bc_weight <= 0:
             raise ValueError("circle_teacher_right needs a teacher: the distill method or teacher_bc_weight > 0")
         if self.governor_setting not in GOVERNOR_PRESETS:
@@ -564,7 +570,8 @@ def make_sim_config(cfg: TrainConfig, num_worlds: int, record_paths: bool = Fals
         values["low_floor_fraction"] = cfg.low_floor_fraction
     if training and cfg.circle_heading != "goal":
         values["circle_heading"] = cfg.circle_heading
-    if training and cfg.circle_scatter_m > 0:
+    if cfg.circle_scatter_m > 0 and (training or name == "circle"):
+        # validation circles scattered too: symmetric ones fly at 1.000 for every snapshot and cannot choose
         values["circle_scatter_m"] = cfg.circle_scatter_m
     if training and cfg.density_range:
         values["density_range"] = parse_density_range(cfg.density_range)

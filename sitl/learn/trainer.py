@@ -268,14 +268,15 @@ class Trainer:
         self.circle_teacher = None
         self.distill = agent_cfg.method == "distill"
         if cfg.teacher_bc_weight > 0 or self.distill:
-            from sitl.eval.orca import RIGHT_HAND_PARAMS, OrcaController, OrcaParams
+            from sitl.eval.orca import OrcaController, OrcaParams
 
             params = OrcaParams(time_horizon_s=cfg.teacher_time_horizon_s, radius_margin_m=cfg.teacher_radius_margin_m)
             try:
                 self.teacher = OrcaController.for_env(env, params, camera_limited=cfg.teacher_camera_limited,
                                                       see_obstacles=True)
                 if cfg.circle_teacher_right:
-                    self.circle_teacher = OrcaController.for_env(env, RIGHT_HAND_PARAMS, camera_limited=True)
+                    right = OrcaParams(right_hand_deg=cfg.circle_teacher_right_deg)
+                    self.circle_teacher = OrcaController.for_env(env, right, camera_limited=True)
             except ImportError as err:  # the binding has wheels for Linux x86_64 only
                 flag = "--method distill" if self.distill else "--teacher-bc-weight"
                 raise ValueError(f"{flag}: {err}") from None
