@@ -344,14 +344,19 @@ def test_flown_protocol_writes_cells_table_and_plot_and_resumes(tmp_path, capsys
         assert exc.value.code == 2
 
 
-def test_circle_scatter_reaches_training_worlds_only():
-    """``--circle-scatter-m``: training circles start scattered; validation and tests fly their own cells; a value
-    outside [0, 10] m is refused."""
+def test_circle_scatter_reaches_training_and_validation_circles():
+    """``--circle-scatter-m``: training circles start scattered, and so do the run's validation circles (symmetric
+    ones fly at 1.000 for every snapshot); its other validation scenes do not; without it nothing is scattered; a
+    value outside [0, 10] m is refused."""
     from sitl.learn.config import TrainConfig, make_sim_config
 
     cfg = TrainConfig(preset="flown-fast", geometry="flown", scenario="mixed", circle_scatter_m=3.0)
     assert make_sim_config(cfg, 1).scenario.circle_scatter_m == 3.0
-    assert make_sim_config(cfg, 1, scenario_name="circle").scenario.circle_scatter_m == 0.0
+    assert make_sim_config(cfg, 1, scenario_name="circle").scenario.circle_scatter_m == 3.0
+    for other in ("random", "obstacles"):
+        assert make_sim_config(cfg, 1, scenario_name=other).scenario.circle_scatter_m == 0.0
+    plain = TrainConfig(preset="flown-fast", geometry="flown", scenario="mixed")
+    assert make_sim_config(plain, 1, scenario_name="circle").scenario.circle_scatter_m == 0.0
     with pytest.raises(ValueError, match="circle_scatter_m"):
         TrainConfig(circle_scatter_m=-1.0)
 

@@ -516,6 +516,21 @@ def test_the_circle_teacher_labels_circle_worlds_with_orca_that_keeps_right_of_w
         resolve_configs({"circle_teacher_right": True}, {})
 
 
+def test_the_circle_teachers_turn_is_a_setting(tmp_path):
+    """``circle_teacher_right_deg``: the circle worlds' teacher turns that far (the ``orca-fov-right80`` reference's
+    80 deg here) and the run's provenance says so; a turn outside [0, 90] deg is refused."""
+    from sitl.eval.orca import WIDE_RIGHT_HAND_PARAMS, baseline_orca
+    from sitl.learn.config import resolve_configs
+
+    trainer = _small_teacher_run(tmp_path, circle_fraction=0.5, circle_teacher_right=True, circle_teacher_right_deg=80.0)
+    assert trainer.circle_teacher.params == WIDE_RIGHT_HAND_PARAMS == baseline_orca("orca-fov-right80")[0]
+    assert trainer.circle_teacher.camera is not None
+    provenance = json.loads((trainer.finish().parent / "final_eval.json").read_text())
+    assert provenance["teacher"]["circle_worlds"]["orca"]["right_hand_deg"] == 80.0
+    with pytest.raises(ValueError, match="circle_teacher_right_deg"):
+        resolve_configs({"method": "distill", "circle_teacher_right": True, "circle_teacher_right_deg": 91.0}, {})
+
+
 def test_a_camera_limited_teacher_labels_the_other_worlds_with_what_each_uav_sees(tmp_path):
     """``teacher_camera_limited``: the worlds other than circles are labelled by orca-fov that sees the
     obstacles (each UAV knows only the UAVs in its camera's view), and the provenance says so."""
