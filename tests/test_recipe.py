@@ -272,6 +272,18 @@ def test_the_final_choice_leaves_out_snapshots_that_fail_a_gate_unless_all_do():
     assert select_snapshot(rescored)["updates"] == 20  # rescored rows only, and of those the cleared one
 
 
+def test_a_gate_flies_its_own_circle_whatever_the_run_scatters():
+    """A run that scatters its circles (``circle_scatter_m``) still gates on the paper's symmetric circle."""
+    from sitl.learn.config import PAPER_CIRCLE_GATE, TrainConfig, make_sim_config
+    from sitl.learn.rescore import gate_config
+
+    cfg = TrainConfig(preset="flown-distill", geometry="flown", scenario="mixed", circle_scatter_m=3.0)
+    gated = gate_config(cfg, PAPER_CIRCLE_GATE, 400)
+    sim = make_sim_config(gated, 1, scenario_name=PAPER_CIRCLE_GATE.scenario)
+    assert sim.scenario.circle_scatter_m == 0.0 and sim.num_uavs == 14 and gated.geometry == "paper"
+    assert make_sim_config(cfg, 1, scenario_name="circle").scenario.circle_scatter_m == 3.0  # its own validation
+
+
 def test_a_recipe_flies_its_gates_on_every_last_stage_snapshot_and_records_them(tmp_path):
     """A gate is flown once per snapshot (validation seeds), recorded in validation.json and the provenance;
     a gate nobody clears leaves the choice to the score (said in the log), and a recipe without gates forgets them."""

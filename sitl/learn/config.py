@@ -59,6 +59,9 @@ class SelectionGate:
     geometry: str  # "paper" or "flown" (sitl.sim.config.GEOMETRIES)
     camera_noise: bool
     min_success: float
+    #: the gate's circles start on their ring, however the run scatters its own (``TrainConfig.circle_scatter_m``):
+    #: the paper's circle is symmetric
+    circle_scatter_m: float = 0.0
 
 
 def _param(default, help: str):

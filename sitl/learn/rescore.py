@@ -85,6 +85,12 @@ def rescore_snapshot(cfg: TrainConfig, make_actor: ActorFactory, scenes: list[Sc
     return {"episodes": episodes, "max_episode_steps": steps, "scenes": results, "score": selection_score(results)}
 
 
+def gate_config(cfg: TrainConfig, gate: SelectionGate, max_episode_steps: int) -> TrainConfig:
+    """The run's configuration with the gate's scene: its geometry, camera noise, number of UAVs and circle starts."""
+    return replace(cfg, geometry=gate.geometry, camera_noise=gate.camera_noise, num_uavs=gate.num_uavs,
+                   circle_scatter_m=gate.circle_scatter_m, max_episode_steps=max_episode_steps)
+
+
 def gate_snapshot(cfg: TrainConfig, make_actor: ActorFactory, gates: list[SelectionGate], episodes: int,
                   max_episode_steps: int | None = None) -> dict:
     """Success of one controller in every gate's scene on the validation seeds, and whether it clears them all.
@@ -94,9 +100,8 @@ def gate_snapshot(cfg: TrainConfig, make_actor: ActorFactory, gates: list[Select
     steps = cfg.time_limit(max_episode_steps)
     scenes = {}
     for gate in gates:
-        gate_cfg = replace(cfg, geometry=gate.geometry, camera_noise=gate.camera_noise, num_uavs=gate.num_uavs,
-                           max_episode_steps=steps)
-        summary = evaluate_scenario(make_actor, gate_cfg, gate.scenario, episodes, VALIDATION_SEED_OFFSET + cfg.seed)
+        summary = evaluate_scenario(make_actor, gate_config(cfg, gate, steps), gate.scenario, episodes,
+                                    VALIDATION_SEED_OFFSET + cfg.seed)
         scenes[gate.name] = {"success_rate": summary["success_rate"], "min_success": gate.min_success}
     return {"episodes": episodes, "max_episode_steps": steps, "gates": [asdict(g) for g in gates], "scenes": scenes,
             "passed": all(r["success_rate"] >= r["min_success"] for r in scenes.values())}
