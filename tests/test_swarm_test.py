@@ -247,6 +247,18 @@ def test_orca_fov_right_flies_the_circle_that_orca_fov_does_not():
     assert plain["success_rate"] < 0.9
 
 
+@needs_rvo
+def test_the_wider_roundabout_holds_where_starts_scatter():
+    """Eight camera-limited UAVs on a 12 m circle whose starts are scattered within 3 m of the ring: pairs meet
+    one at a time and neighbours close in from outside the view; turning 80 deg (orca-fov-right80) keeps more of
+    them apart than 40 deg (orca-fov-right) on the same episodes."""
+    settings = EvalSettings(scenario=ScenarioConfig(name="circle", circle_radius_m=12.0, circle_scatter_m=3.0),
+                            num_uavs=8, episodes=20, camera="realsense_d435")
+    narrow = evaluate_method(resolve_method("orca-fov-right"), settings, progress=False).summary
+    wide = evaluate_method(resolve_method("orca-fov-right80"), settings, progress=False).summary
+    assert wide["success_rate"] >= narrow["success_rate"] + 0.05
+
+
 def _orca_pole_run(see_obstacles: bool, camera_limited: bool = False) -> tuple[str, float]:
     """One UAV flying ORCA to its goal 10 m north, through a 0.2 m pole: its outcome and closest approach."""
     from sitl.eval.orca import orca_actor
