@@ -529,6 +529,8 @@ def test_the_circle_teachers_turn_is_a_setting(tmp_path):
     assert provenance["teacher"]["circle_worlds"]["orca"]["right_hand_deg"] == 80.0
     with pytest.raises(ValueError, match="circle_teacher_right_deg"):
         resolve_configs({"method": "distill", "circle_teacher_right": True, "circle_teacher_right_deg": 91.0}, {})
+    with pytest.raises(ValueError, match="needs circle_teacher_right"):
+        resolve_configs({"circle_teacher_right_deg": 80.0}, {})  # a turn for a teacher the run does not have
 
 
 def test_a_camera_limited_teacher_labels_the_other_worlds_with_what_each_uav_sees(tmp_path):

@@ -325,6 +325,9 @@ class TrainConfig:
             raise ValueError("memory_outside_view needs remembered depth: set memory_steps (e.g. 10)")
         if not 0.0 <= self.circle_teacher_right_deg <= 90.0:
             raise ValueError(f"circle_teacher_right_deg must be in [0, 90] degrees, got {self.circle_teacher_right_deg}")
+        if self.circle_teacher_right_deg != RIGHT_HAND_PARAMS.right_hand_deg and not self.circle_teacher_right:
+            raise ValueError("circle_teacher_right_deg sets the circle teacher's turn: it needs circle_teacher_right "
+                             "(the flown-distill preset has it)")
         if self.circle_teacher_right and self.method != "distill" and self.teacher_bc_weight <= 0:
             raise ValueError("circle_teacher_right needs a teacher: the distill method or teacher_bc_weight > 0")
         if self.governor_setting not in GOVERNOR_PRESETS:
