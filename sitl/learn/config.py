@@ -323,8 +323,10 @@ class TrainConfig:
             raise ValueError(f"teacher_bc_weight must be in [0, 100], got {self.teacher_bc_weight}")
         if self.memory_outside_view and not self.memory_steps:
             raise ValueError("memory_outside_view needs remembered depth: set memory_steps (e.g. 10)")
-        if not 0.0 <= self.circle_teacher_right_deg <= 90.0:
-            raise ValueError(f"circle_teacher_right_deg must be in [0, 90] degrees, got {self.circle_teacher_right_deg}")
+        try:  # OrcaParams holds the angle's bounds
+            OrcaParams(right_hand_deg=self.circle_teacher_right_deg)
+        except ValueError as err:
+            raise ValueError(f"circle_teacher_right_deg: {err}") from None
         if self.circle_teacher_right_deg != RIGHT_HAND_PARAMS.right_hand_deg and not self.circle_teacher_right:
             raise ValueError("circle_teacher_right_deg sets the circle teacher's turn: it needs circle_teacher_right "
                              "(the flown-distill preset has it)")
