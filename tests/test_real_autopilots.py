@@ -28,8 +28,9 @@ import numpy as np
 import pytest
 
 from companion.spec import DEFAULT_TASK_SPEC
-from sitl.realtime.autopilot_sitl import (ARDUCOPTER, BINARY_ENV, KINDS, PX4, RealSwarm, circle_layout,
-                                          find_autopilot, fly_and_stop, fly_circle, pairwise_min_distance)
+from sitl.realtime.autopilot_sitl import (ARDUCOPTER, BINARY_ENV, KINDS, PX4, STOPPED_MPS, PoseTrace, RealSwarm,
+                                          circle_layout, end_speed_mps, find_autopilot, fly_and_stop, fly_circle,
+                                          pairwise_min_distance)
 
 SIGTERM_STOP_M = 2.0  # docs/real_autopilots.md: a SIGTERM'd companion's vehicle stops within this
 SIGKILL_STOP_M = 4.0  # ... and after SIGKILL, with the recommended failsafe parameters
@@ -204,6 +205,23 @@ def test_find_autopilot_names_the_binary_or_says_why_not(tmp_path, monkeypatch):
     assert path is None and "SWARMNAV_ARDUCOPTER" in why and "not an executable" in why
     fake.chmod(0o755)
     assert find_autopilot(ARDUCOPTER) == (fake, "")
+
+
+def test_still_moving_reads_the_net_speed_so_a_holds_jitter_is_not_motion():
+    """PX4 Hold jitters at up to 0.5 m/s while staying put: one sample must not call that moving (a SIGKILL run
+    failed so in session 54); a vehicle that drifts on at 0.8 m/s is moving; a vehicle never placed is NaN."""
+    t = np.arange(0.0, 12.0, 0.05)
+    pos = np.zeros((t.size, 3, 3))
+    vel = np.zeros_like(pos)
+    pos[:, 0, :2] = 0.25 * np.stack([np.cos(2.0 * t), -np.sin(2.0 * t)], axis=1)  # circling 0.25 m at 0.5 m/s
+    vel[:, 0, :2] = 0.5 * np.stack([-np.sin(2.0 * t), -np.cos(2.0 * t)], axis=1)
+    pos[:, 1, 0] = 0.8 * t
+    pos[:, 2] = np.nan
+    trace = PoseTrace(t, pos, vel, [["AUTO.LOITER"] * 3] * t.size, [[True] * 3] * t.size)
+    assert np.linalg.norm(vel[-1, 0, :2]) > 0.49  # the last sample alone would read as moving
+    assert end_speed_mps(trace, 0) < STOPPED_MPS * 0.6
+    assert end_speed_mps(trace, 1) == pytest.approx(0.8, abs=1e-6) and end_speed_mps(trace, 1) > STOPPED_MPS
+    assert np.isnan(end_speed_mps(trace, 2))
 
 
 def test_circle_layout_sends_every_vehicle_to_its_antipode():

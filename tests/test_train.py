@@ -527,6 +527,7 @@ def test_the_circle_teachers_turn_is_a_setting(tmp_path):
     assert trainer.circle_teacher.camera is not None
     provenance = json.loads((trainer.finish().parent / "final_eval.json").read_text())
     assert provenance["teacher"]["circle_worlds"]["orca"]["right_hand_deg"] == 80.0
+    assert provenance["teacher"]["circle_worlds"]["kind"].startswith("orca-fov-right80 ")  # the reference flown alone
     with pytest.raises(ValueError, match="circle_teacher_right_deg"):
         resolve_configs({"method": "distill", "circle_teacher_right": True, "circle_teacher_right_deg": 91.0}, {})
     with pytest.raises(ValueError, match="needs circle_teacher_right"):

@@ -688,13 +688,16 @@ class Trainer:
         if self.distill:  # not reinforcement learning: a student of privileged ORCA
             provenance["teacher"] = {"kind": f"orca ({knows}, sees obstacles)", "dagger_beta_updates":
                                      cfg.dagger_beta_updates, "module": "sitl.eval.orca"}
-        from sitl.eval.orca import OrcaParams
+        from sitl.eval.orca import ORCA_REFERENCES, OrcaParams
 
         if self.teacher is not None and self.teacher.params != OrcaParams():  # not the ORCA references' settings
             provenance["teacher"]["orca"] = asdict(self.teacher.params)
         if self.circle_teacher is not None:  # circle worlds: the view-limited right-of-way ORCA
-            provenance["teacher"]["circle_worlds"] = {"kind": "orca-fov-right (knows the UAVs in view, keeps right)",
-                                                      "orca": asdict(self.circle_teacher.params)}
+            params = self.circle_teacher.params
+            name = next((n for n, ref in ORCA_REFERENCES.items() if ref == (params, True, False)), "orca-fov-right")
+            provenance["teacher"]["circle_worlds"] = {
+                "kind": f"{name} (knows the UAVs in view, keeps right by {params.right_hand_deg:g} deg)",
+                "orca": asdict(params)}
         if selected is not None:
             provenance["selected_snapshot"] = selected  # trained for wall_time_s; these networks are from here
         if cfg.init_from:

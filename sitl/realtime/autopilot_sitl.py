@@ -59,7 +59,10 @@ DEFAULT_HOME = {ARDUCOPTER: (-35.363261, 149.165230, 584.0), PX4: (47.397742, 8.
 PX4_SIH_AUTOSTART = "10040"  # sihsim_quadx
 MAV_COMP_ID_ONBOARD_COMPUTER = 191  # the companion's component id: goals go there
 POSITION_MASK = 0b110111111000  # SET_POSITION_TARGET_LOCAL_NED: position only
-STOPPED_MPS = 0.5  # horizontal speed under which a vehicle counts as stopped (PX4 Hold jitters at 0.1-0.45 m/s)
+STOPPED_MPS = 0.5  # horizontal speed under which a vehicle counts as stopped (PX4 Hold jitters at 0.1-0.5 m/s)
+#: "Still moving at the end" is the net horizontal speed over this last window: Hold's jitter swings back and forth
+#: (a single sample read 0.5 m/s in a Hold that moved 0.27 m in 2 s), a vehicle that flies on does not.
+END_WINDOW_S = 2.0
 GCS_SYSID = 245  # this module's ground-station link (the world is 250)
 #: Vehicle i's depth frames go to this + i: not sitl.world's default (14640), where any other
 #: sitl.vehicle or sitl.world on the machine sends its frames (a companion fed another's frames flies blind).
@@ -120,6 +123,21 @@ class PoseTrace:
         k = self.t >= t0
         idx = np.flatnonzero(k)
         return PoseTrace(self.t[k], self.pos[k], self.vel[k], [self.mode[i] for i in idx], [self.armed[i] for i in idx])
+
+
+def end_speed_mps(trace: PoseTrace, vehicle: int, window_s: float = END_WINDOW_S) -> float:
+    """Vehicle ``vehicle``'s net horizontal speed (m/s) over the last ``window_s`` of ``trace`` in which it was
+    placed: how far it got from where it was, over the time. A hold's jitter swings back and forth and reads
+    near 0; a vehicle that flies on reads its speed. NaN when it was never placed."""
+    seen = np.flatnonzero(np.isfinite(trace.pos[:, vehicle, :2]).all(axis=1))
+    if seen.size == 0:
+        return math.nan
+    last = seen[-1]
+    first = seen[np.searchsorted(trace.t[seen], trace.t[last] - window_s)]
+    span_s = float(trace.t[last] - trace.t[first])
+    if span_s <= 0.0:
+        return float(np.linalg.norm(trace.vel[last, vehicle, :2]))  # one sample: what the autopilot reported
+    return float(np.linalg.norm(trace.pos[last, vehicle, :2] - trace.pos[first, vehicle, :2]) / span_s)
 
 
 def _pythonpath() -> str:
@@ -570,11 +588,13 @@ def fly_and_stop(kind: str, binary: Path, out: Path, sig: int, distance_m: float
     slow = np.flatnonzero(speed < STOPPED_MPS)
     stop_k = int(slow[0]) if slow.size else len(tr.t) - 1  # the first moment it had stopped
     drift = np.linalg.norm(tr.pos[stop_k:, 0, :2] - tr.pos[stop_k, 0, :2], axis=1)
+    end_speed = end_speed_mps(tr, 0)
     summary = {
         "autopilot": kind, "signal": signal.Signals(sig).name, "speed_at_signal_mps": round(speed_sig, 2),
         "stop_distance_m": round(float(np.nanmax(horizontal[:stop_k + 1])), 2),
         "stopped_after_s": round(float(tr.t[stop_k] - t_sig), 2) if slow.size else None,
-        "moved_after_stop_m": round(float(np.nanmax(drift)), 2), "still_moving_at_end": bool(speed[-1] > STOPPED_MPS),
+        "moved_after_stop_m": round(float(np.nanmax(drift)), 2),
+        "end_speed_mps": round(end_speed, 2), "still_moving_at_end": bool(end_speed > STOPPED_MPS),
         "climb_m": round(float(-(np.nanmin(tr.pos[:, 0, 2]) - pos_sig[2])), 2),
         "modes_after": list(dict.fromkeys(m[0] for m in tr.mode)), "companion_exit": exit_code,
         "params": params or {}, "watch_s": watch_s, "policy": str(policy), "camera": camera or "the world's default",
