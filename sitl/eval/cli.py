@@ -64,7 +64,8 @@ from sitl.eval.methods import BASELINES, DEFAULT_POLICY, EvaluationError, resolv
 from sitl.eval.paper import DEFAULT_FIG6_NS, PAPER_METHODS, paper_cells, parse_policies, run_paper
 from sitl.eval.report import write_json, markdown_table
 from sitl.sim.config import CIRCLE_HEADINGS, CIRCLE_RADIUS_M, DENSITIES, SCENARIOS, ScenarioConfig, density_from_name
-from sitl.sim.dynamics import DYNAMICS_NAMES
+from sitl.sim.dynamics import (DYNAMICS_NAMES, RESPONSE_PRESETS, KinematicRandomization, nominal_ranges,
+                               parse_response)
 from sitl.sim.scenarios import EVAL_SEED_OFFSET
 
 #: Bounds of the evaluation's sizes: beyond them a run would only exhaust memory or never end.
@@ -130,6 +131,18 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         help="where circle UAVs face at the start: goal (each its own, the paper), common (the swarm "
                              "one heading drawn per episode, as SITL spawns it) or any (each its own random one) "
                              "(default goal; docs/results.md \"The circle's start heading\")")
+    parser.add_argument("--altitude", type=float_range(0.0, MAX_RADIUS_M, low_open=True), default=None, metavar="M",
+                        help=f"circle altitude in m (default {ScenarioConfig().circle_alt_m:g}, the paper's)")
+    parser.add_argument("--scatter", type=float_range(0.0, MAX_RADIUS_M), default=0.0, metavar="M",
+                        help="circle starts moved horizontally to a uniform point within M metres of the ring, goals "
+                             "at the nominal antipodes (default 0; PX4 SIH's starts: ~1 m)")
+    parser.add_argument("--response", type=_response, default=None, metavar="SPEC",
+                        help="each UAV's velocity response drawn per UAV and episode (kinematic dynamics): a preset "
+                             f"({', '.join(RESPONSE_PRESETS)}: fitted to that autopilot's vehicles) or "
+                             "FIELD=LOW:HIGH items, comma-separated, over the nominal response (e.g. "
+                             "tau_horizontal_s=0.5:1,drag_horizontal_per_s=0.4; the fields: "
+                             "sitl.sim.dynamics.KinematicRandomization; `python -m sitl.real_autopilots fit RUN` prints "
+                             "the spec of a flight); default: every UAV nominal")
     _add_common(parser)
     parser.add_argument("--out", type=output_dir, default=None,
                         help="output folder (default runs/swarm_test/<method>-<scenario>-n<N>)")
@@ -149,6 +162,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     mav.add_argument("--depth-port", type=_port, default=14640, help="vehicle i's depth frames to UDP depth-port + i")
     mav.add_argument("--gcs-port", type=_port, default=14550, help="ground-station port of every vehicle (this process)")
     args = parser.parse_args(argv)
+    if args.scenario != "circle" and (args.altitude is not None or args.scatter):
+        parser.error("--altitude and --scatter shape the circle scenario; the random scenes draw their own altitudes")
+    if args.response is not None and args.dynamics != "kinematic":
+        parser.error(f"--response draws the kinematic backend's response; --dynamics {args.dynamics} has its own")
+    if args.response is not None and args.mavlink:
+        parser.error("--response is in-process only: sitl.vehicle flies the nominal response")
     if args.camera_noise is None:  # a real sensor's preset brings its noise
         args.camera_noise = args.camera not in (None, "paper") and not args.mavlink
     if args.episodes is None:
@@ -182,12 +201,23 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         args.batch = max(args.batch, args.episodes)  # the in-process run then meets exactly the same episodes
     try:
         density = density_from_name(args.density)
+        circle = {"circle_scatter_m": args.scatter}
+        if args.altitude is not None:
+            circle["circle_alt_m"] = args.altitude
         args.scenario_config = ScenarioConfig(name=args.scenario, density=density, circle_radius_m=args.radius,
-                                              circle_heading=args.circle_heading)
+                                              circle_heading=args.circle_heading, **circle)
     except ValueError as err:
         parser.error(str(err))
     args.parser = parser
     return args
+
+
+def _response(text: str) -> KinematicRandomization:
+    """A ``--response`` specification over the nominal response (sitl.sim.dynamics.parse_response)."""
+    try:
+        return parse_response(text, nominal_ranges())
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
 
 
 def _density(text: str) -> str:
@@ -207,7 +237,9 @@ _port = port_in(1024, 65535)  # unprivileged ports for the --mavlink processes
 def _scenario_tag(scenario: ScenarioConfig) -> str:
     if scenario.name == "circle":
         heading = "" if scenario.circle_heading == "goal" else f"-{scenario.circle_heading}"
-        return f"circle-r{scenario.circle_radius_m:g}{heading}"
+        alt = "" if scenario.circle_alt_m == ScenarioConfig().circle_alt_m else f"-a{scenario.circle_alt_m:g}"
+        scatter = f"-scatter{scenario.circle_scatter_m:g}" if scenario.circle_scatter_m else ""
+        return f"circle-r{scenario.circle_radius_m:g}{alt}{scatter}{heading}"
     return f"{scenario.name}-{density_label(scenario.density).replace('/', '')}"
 
 
@@ -227,7 +259,7 @@ def run_single(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     settings = EvalSettings(scenario=args.scenario_config, num_uavs=args.n, episodes=args.episodes, seed=args.seed,
                             dynamics=args.dynamics, camera_noise=args.camera_noise, max_episode_steps=args.max_steps,
-                            batch_worlds=args.batch, camera=args.camera)
+                            batch_worlds=args.batch, camera=args.camera, response=args.response)
     methods = [method]
     if args.reference and method.label != "straight":
         methods.append(resolve_method("straight"))
@@ -239,7 +271,8 @@ def run_single(args: argparse.Namespace) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
 
-    default_name = f"{method.label}-{_scenario_tag(settings.scenario)}-n{settings.num_uavs}"
+    default_name = f"{method.label}-{_scenario_tag(settings.scenario)}-n{settings.num_uavs}" + (
+        "-response" if settings.response is not None else "")
     out = args.out or Path("runs/swarm_test") / (default_name + ("-mavlink" if args.mavlink else ""))
     try:
         out.mkdir(parents=True, exist_ok=True)

@@ -20,6 +20,7 @@ from companion.spec import CAMERA_PRESETS
 from sitl.cli_args import fits_camera
 from sitl.sim.camera import StereoNoise
 from sitl.sim.config import DENSITIES, ScenarioConfig, SimConfig
+from sitl.sim.dynamics import KinematicRandomization, describe_response, nominal_ranges
 from sitl.sim.episodes import ScenarioError, StepObserver, run_episodes
 from sitl.sim.metrics import UAVRecord, summarize
 from sitl.sim.scenarios import EVAL_SEED_OFFSET
@@ -39,6 +40,9 @@ class EvalSettings:
     max_episode_steps: int = DEFAULT_TASK_SPEC.max_episode_steps
     batch_worlds: int = 100  # episodes flown at once (parallel worlds)
     record_paths: bool = True
+    #: Each UAV's velocity response drawn per UAV and episode from these ranges (kinematic only; ``swarm_test
+    #: --response``); None: every UAV flies the nominal one.
+    response: KinematicRandomization | None = None
 
     @property
     def env_seed(self) -> int:
@@ -56,7 +60,10 @@ class EvalSettings:
             where = f"{s.name} {density_label(s.density)}"
             if s.altitude_range_m:
                 where += " at {:g}-{:g} m".format(*s.altitude_range_m)
-        return f"{where}, N={self.num_uavs}, {self.episodes} episodes, {self.dynamics}"
+        dynamics = self.dynamics
+        if self.response is not None:
+            dynamics += f" (response {describe_response(self.response, nominal_ranges())})"
+        return f"{where}, N={self.num_uavs}, {self.episodes} episodes, {dynamics}"
 
 
 def density_label(density: float) -> str:
@@ -90,7 +97,7 @@ def sim_config_for(method: Method, settings: EvalSettings, num_worlds: int) -> S
                      camera_noise=dataclasses.replace(settings.noise_model, min_range_m=max(
                          min_range_m, sensor.min_range_m if sensor else 0.0))
                      if settings.camera_noise else None,
-                     record_paths=settings.record_paths, **extra)
+                     record_paths=settings.record_paths, dynamics_randomization=settings.response, **extra)
 
 
 @dataclass

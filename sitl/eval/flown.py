@@ -88,8 +88,10 @@ FLOWN_CELL_NAMES: tuple[str, ...] = tuple(cell.name for cell in flown_cells())
 
 def _cell_key(cell: FlownCell, method: Method) -> dict:
     """What a stored result must match to be reused: the settings and the exact controller."""
-    key = {"protocol": "flown", "cell": cell.name, "method": method.label,
-           "settings": json.loads(json.dumps(dataclasses.asdict(replace(cell.settings, record_paths=False)))),
+    settings = json.loads(json.dumps(dataclasses.asdict(replace(cell.settings, record_paths=False))))
+    if settings.get("response") is None:  # cells with the nominal response keep the keys they were stored with
+        settings.pop("response", None)
+    key = {"protocol": "flown", "cell": cell.name, "method": method.label, "settings": settings,
            "policy_sha256": file_digest(method.path) if method.path else None}
     if method.governor is not None:  # only then: the keys of stored ungoverned cells stay as they were
         key["governor"] = method.governor.to_dict()

@@ -23,7 +23,7 @@ from sitl.learn.agent import METHODS, AgentConfig
 from sitl.sim.camera import EDGE_HOLE_MODELS, StereoNoise
 from sitl.sim.config import (CIRCLE_RADIUS_M, GEOMETRIES, LOW_FLOOR_BAND_M, OBSTACLE_SCENE_DENSITY,
                              TRAINING_SCENARIOS, RewardConfig, SimConfig, density_from_name, scenario_for)
-from sitl.sim.dynamics import KinematicRandomization
+from sitl.sim.dynamics import KinematicRandomization, parse_response
 
 @dataclass(frozen=True)
 class RecipeStage:
@@ -116,6 +116,11 @@ class TrainConfig:
                                             "vertical velocity lag drawn, seconds (a first-order fit to PX4 SIH reads "
                                             "1.1-1.6 s, though its response is a PI loop against drag: "
                                             "docs/simulator.md); 0: KinematicRandomization's own range")
+    response: str = _param("", "with --randomize-dynamics, training worlds only: response ranges layered over "
+                               "KinematicRandomization's (after --velocity-lag-max-s): a preset (px4-sih: the "
+                               "fitted spread of PX4 SIH's vehicles) or FIELD=LOW:HIGH items, comma-separated, as "
+                               "swarm_test --response takes them (e.g. tau_horizontal_s=0.15:1,"
+                               "drag_horizontal_per_s=0:0.8); empty: none")
     yaw_jitter_deg: float = _param(45.0, "random scenario: initial heading error from the goal bearing, up to +-deg")
     arrival_radius_m: float = _param(DEFAULT_TASK_SPEC.arrival_radius_m,
                                      "distance to the goal that counts as arrival (paper: 0.5 m)")
@@ -264,6 +269,10 @@ class TrainConfig:
         if self.velocity_lag_max_s and not (KinematicRandomization().tau_horizontal_s[0] < self.velocity_lag_max_s <= 5.0):
             raise ValueError(f"velocity_lag_max_s must be 0 (the default range) or in "
                              f"({KinematicRandomization().tau_horizontal_s[0]:g}, 5] s, got {self.velocity_lag_max_s}")
+        if self.response:
+            if not self.randomize_dynamics:
+                raise ValueError("response needs randomize_dynamics (--randomize-dynamics): it widens that draw")
+            parse_response(self.response, KinematicRandomization())  # a bad item fails here, before the run
         # The scenario checks low_floor_fraction (its range, and a floor drawn per episode): here, so a
         # bad flag fails before the run starts.
         scenario = scenario_for(self.geometry, "random", low_floor_fraction=self.low_floor_fraction,
@@ -591,6 +600,8 @@ def make_sim_config(cfg: TrainConfig, num_worlds: int, record_paths: bool = Fals
         if cfg.velocity_lag_max_s > 0:
             lag = (randomization.tau_horizontal_s[0], cfg.velocity_lag_max_s)
             randomization = dataclasses.replace(randomization, tau_horizontal_s=lag, tau_vertical_s=lag)
+        if cfg.response:
+            randomization = parse_response(cfg.response, randomization)
     return SimConfig(num_uavs=cfg.num_uavs, num_worlds=num_worlds, scenario=scenario, camera=camera,
                      dynamics_randomization=randomization,
                      camera_noise=dataclasses.replace(TRAINING_STEREO_NOISE, min_range_m=camera.min_range_m,

@@ -526,8 +526,19 @@ def fly_circle(kind: str, binary: Path, n: int, out: Path, radius_m: float = 12.
     summary |= {"policy": str(policy), "camera": camera or "the world's default", "face_goal_s": face_goal_s,
                 "goals_sent_within_s": round(float(first_sent_s.max()), 4), "autopilot_nice": autopilot_nice,
                 "goal_sent_s": np.round(first_sent_s, 4).tolist()}
+    summary["response_fit"] = _fit_or_why(out)
     write_summary(out, summary)
     return summary
+
+
+def _fit_or_why(out: Path) -> dict | str:
+    """Each vehicle's fitted velocity response (sitl.realtime.response_fit), or why there is none."""
+    from sitl.realtime.response_fit import FitError, fit_run, fit_summary
+
+    try:
+        return fit_summary(fit_run(out))
+    except FitError as err:
+        return f"not fitted: {err}"
 
 
 def _circle_summary(kind, n, radius_m, altitude_m, rotation_deg, tr: PoseTrace, goals, offsets, arrived_t, t0,
@@ -636,8 +647,28 @@ def _policy_file(text: str) -> Path:
     return Path(text)
 
 
+def _fit_main(runs: list[Path]) -> int:
+    """``fit``: every run's vehicles, a table per run on stderr, one JSON line on stdout (the spec spanning all)."""
+    from sitl.realtime.response_fit import FitError, fit_run, fit_summary, format_fits, response_spec
+
+    everything, per_run = [], {}
+    for run in runs:
+        try:
+            fits = fit_run(run, progress=lambda f: print(f"{run}: vehicle {f.vehicle} fitted", file=sys.stderr,
+                                                         flush=True))
+        except (FitError, OSError) as err:
+            print(f"sitl.real_autopilots fit: error: {err}", file=sys.stderr)
+            return 2
+        per_run[str(run)] = fit_summary(fits)
+        (run / "response_fit.json").write_text(json.dumps(per_run[str(run)], indent=1))
+        print(f"{run}:\n{format_fits(fits)}\n  --response {per_run[str(run)]['response']}", file=sys.stderr)
+        everything += fits
+    print(json.dumps({"runs": per_run, "response": response_spec(everything)}))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
-    """``python -m sitl.real_autopilots circle|stop``: run and print the measured results as JSON."""
+    """``python -m sitl.real_autopilots circle|stop|fit``: run (or fit) and print the measured results as JSON."""
     import argparse
 
     from sitl.cli_args import ArgumentParser, finite_float, output_dir, positive_float, int_range
@@ -647,6 +678,11 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="what", required=True)
     circle = sub.add_parser("circle", help="a circle of N vehicles flying to their antipodes together")
     stop = sub.add_parser("stop", help="one vehicle in flight; its companion gets a signal: how far does it go on?")
+    fit = sub.add_parser("fit", help="fit each vehicle's velocity response from finished runs' logs (the simulator's "
+                                     "kinematic law: lag, drag, integral, delay) and print the --response ranges "
+                                     "that span them (sitl.realtime.response_fit)")
+    fit.add_argument("runs", nargs="+", type=Path, metavar="RUN",
+                     help="a run folder of circle or stop (companion_I.jsonl, trace.jsonl); writes RUN/response_fit.json")
     for p in (circle, stop):
         p.add_argument("--autopilot", choices=KINDS, required=True)
         p.add_argument("--out", type=output_dir, required=True, metavar="DIR", help="logs, traces and summary.json")
@@ -674,6 +710,8 @@ def main(argv: list[str] | None = None) -> int:
     stop.add_argument("--signal", choices=("TERM", "KILL", "INT"), default="TERM")
     stop.add_argument("--distance", type=positive_float, default=30.0, help="goal distance north in metres (default 30)")
     args = parser.parse_args(argv)
+    if args.what == "fit":
+        return _fit_main(args.runs)
 
     binary, why = find_autopilot(args.autopilot)
     if binary is None:

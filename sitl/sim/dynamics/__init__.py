@@ -7,7 +7,8 @@ one JSBSim rigid-body quadrotor per UAV under a velocity controller.
 from __future__ import annotations
 
 from sitl.sim.dynamics.base import Dynamics
-from sitl.sim.dynamics.kinematic import KinematicDynamics, KinematicParams, KinematicRandomization
+from sitl.sim.dynamics.kinematic import (RESPONSE_PRESETS, KinematicDynamics, KinematicParams, KinematicRandomization,
+                                        describe_response, nominal_ranges, parse_response)
 
 DYNAMICS_NAMES = ("kinematic", "jsbsim")
 
@@ -23,4 +24,5 @@ def make_dynamics(name: str, num_uavs: int) -> Dynamics:
     raise ValueError(f"unknown dynamics {name!r}; choose one of {', '.join(DYNAMICS_NAMES)}")
 
 
-__all__ = ["DYNAMICS_NAMES", "Dynamics", "KinematicDynamics", "KinematicParams", "KinematicRandomization", "make_dynamics"]
+__all__ = ["DYNAMICS_NAMES", "RESPONSE_PRESETS", "Dynamics", "KinematicDynamics", "KinematicParams", "KinematicRandomization",
+           "describe_response", "make_dynamics", "nominal_ranges", "parse_response"]

@@ -24,6 +24,7 @@ limits from a :class:`KinematicRandomization` (training: a policy must not rely 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -84,6 +85,57 @@ _RESPONSE_FIELDS = ("tau_horizontal_s", "tau_vertical_s", "tau_yaw_s", "max_acc_
                     "integral_horizontal_per_s2")
 #: The fields that may be 0 (off); the others are time constants and limits, > 0.
 _MAY_BE_ZERO = ("drag_horizontal_per_s", "integral_horizontal_per_s2")
+
+
+#: Named per-UAV response ranges for ``--response`` (:func:`parse_response`).
+#: ``px4-sih``: the spread of the fits of PX4 SIH's default quadrotor (sihsim_quadx) in five circles of 8 flown by
+#: ``sitl.real_autopilots`` (``python -m sitl.real_autopilots fit``; docs/real_autopilots.md "Fitting each
+#: vehicle's response"): within one run its vehicles fit lags 0.7-1.05 s and drags 0.15-0.8 /s.
+RESPONSE_PRESETS: dict[str, dict[str, tuple[float, float]]] = {
+    "px4-sih": {"tau_horizontal_s": (0.7, 1.0), "drag_horizontal_per_s": (0.3, 0.8),
+                "integral_horizontal_per_s2": (0.1, 0.3), "tau_vertical_s": (0.1, 0.3)},
+}
+
+
+def nominal_ranges(params: KinematicParams = KinematicParams()) -> KinematicRandomization:
+    """Ranges that draw every UAV at ``params`` (the base an evaluation's ``--response`` is layered over)."""
+    return KinematicRandomization(**{name: (getattr(params, name),) * 2 for name in _RESPONSE_FIELDS})
+
+
+def parse_response(text: str, base: KinematicRandomization) -> KinematicRandomization:
+    """``base`` with the ranges named in ``text`` replaced: comma-separated items, each a preset of
+    :data:`RESPONSE_PRESETS` or ``FIELD=LOW:HIGH`` / ``FIELD=VALUE`` with FIELD a :class:`KinematicRandomization`
+    field (e.g. ``px4-sih`` or ``tau_horizontal_s=0.5:1,drag_horizontal_per_s=0.4``); later items win.
+    Raises ValueError with a one-line message naming the bad item."""
+    values: dict[str, tuple[float, float]] = {}
+    for item in (part.strip() for part in text.split(",")):
+        if not item:
+            continue
+        if item in RESPONSE_PRESETS:
+            values |= RESPONSE_PRESETS[item]
+            continue
+        name, sep, value = item.partition("=")
+        name = name.strip()
+        if not sep or name not in _RESPONSE_FIELDS:
+            raise ValueError(f"response item {item!r}: expected a preset ({', '.join(RESPONSE_PRESETS)}) or FIELD=LOW:HIGH "
+                             f"with FIELD one of {', '.join(_RESPONSE_FIELDS)}")
+        try:
+            bounds = [float(v) for v in value.split(":")]
+        except ValueError:
+            bounds = []
+        if len(bounds) not in (1, 2) or not all(math.isfinite(b) for b in bounds):
+            raise ValueError(f"response item {item!r}: expected {name}=LOW:HIGH or {name}=VALUE with finite numbers")
+        values[name] = (bounds[0], bounds[-1])
+    if not values:
+        raise ValueError(f"response {text!r} names nothing: give a preset ({', '.join(RESPONSE_PRESETS)}) or FIELD=LOW:HIGH")
+    return dataclasses.replace(base, **values)  # KinematicRandomization checks each range
+
+
+def describe_response(ranges: KinematicRandomization, base: KinematicRandomization) -> str:
+    """The ranges that differ from ``base``, as a ``--response`` specification (``nominal`` when none)."""
+    parts = [f"{name}={lo:g}:{hi:g}" if lo != hi else f"{name}={lo:g}"
+             for name in _RESPONSE_FIELDS for lo, hi in [getattr(ranges, name)] if (lo, hi) != getattr(base, name)]
+    return ",".join(parts) or "nominal"
 
 
 class KinematicDynamics(Dynamics):
