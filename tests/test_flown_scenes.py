@@ -333,7 +333,7 @@ def test_flown_protocol_writes_cells_table_and_plot_and_resumes(tmp_path, capsys
     assert set(data["cells"]["obstacles"]["results"]["straight"]["by_goal_altitude"]) == {"below 3 m", "3-6 m",
                                                                                          "above 6 m"}
     assert main(argv) == 0
-    assert "0 computed, 7 reused" in capsys.readouterr().out
+    assert "0 computed, 8 reused" in capsys.readouterr().out
     assert main([*argv, "--cells", "obstacles,random-small"]) == 0  # a subset: only those cells, still reused
     printed = capsys.readouterr().out
     assert "0 computed, 2 reused" in printed and "| random-medium |" not in printed

@@ -14,6 +14,10 @@ axis, static obstacles, the camera's noise, and a JSBSim cell. Cells (N = 8 each
   :data:`FLOWN_CIRCLE_SCATTER_M` of its point on the ring, the goals still at the nominal antipodes (a
   swarm whose starts are off by GPS errors or a takeoff's drift; how PX4 SIH's circles started before the
   companion kept station);
+* ``circle-n8-px4-sih``: the simulator's twin of ``sitl.real_autopilots circle --autopilot px4`` (12 m radius,
+  8 m up, starts scattered within 1 m as PX4 SIH's do) with each UAV's velocity response drawn apart from
+  the spread fitted to PX4 SIH's vehicles (``--response px4-sih``; docs/real_autopilots.md "Fitting each
+  vehicle's response"): where policies that fly every other circle meet on PX4 SIH;
 * ``obstacles``: poles, trees and boxes among the UAVs (:data:`OBSTACLE_SCENE_DENSITY`);
 * ``random-medium-jsbsim``: ``random-medium`` on the JSBSim rigid-body backend.
 
@@ -40,12 +44,16 @@ from sitl.eval.report import markdown_table, write_json
 from sitl.sim.camera import StereoNoise
 from sitl.sim.config import (DENSITIES, FLOWN_ALTITUDE_RANGE_M, FLOWN_CIRCLE_SCATTER_M, OBSTACLE_SCENE_DENSITY,
                              scenario_for)
+from sitl.sim.dynamics import nominal_ranges, parse_response
 from sitl.sim.metrics import GOAL_ALTITUDE_BINS_M, success_by_goal_altitude
 
 #: Episodes per cell: random-scene success differs between controllers by a few points, which
 #: needs ~500 episodes (4000 UAV-episodes) to resolve.
 DEFAULT_EPISODES = 500
 PROTOCOL_N = 8
+#: The ``circle-n8-px4-sih`` cell: ``sitl.real_autopilots circle``'s default layout (radius, altitude m) and PX4
+#: SIH's start scatter (0.2-1.0 m off the ring in session 54's circles), with the ``px4-sih`` response.
+PX4_SIH_CIRCLE = dict(circle_radius_m=12.0, circle_alt_m=8.0, circle_scatter_m=1.0)
 
 
 @dataclass
@@ -73,6 +81,9 @@ def flown_cells(episodes: int = DEFAULT_EPISODES, seed: int = 0, camera_noise: b
         scenario=scenario_for("flown", "circle", circle_heading="common"), **common)))
     cells.append(FlownCell("circle-n8-scatter", EvalSettings(
         scenario=scenario_for("flown", "circle", circle_scatter_m=FLOWN_CIRCLE_SCATTER_M), **common)))
+    cells.append(FlownCell("circle-n8-px4-sih", EvalSettings(
+        scenario=scenario_for("paper", "circle", **PX4_SIH_CIRCLE),
+        response=parse_response("px4-sih", nominal_ranges()), **common)))
     cells.append(FlownCell("obstacles", EvalSettings(
         scenario=scenario_for("flown", "obstacles", density=OBSTACLE_SCENE_DENSITY), **common)))
     if jsbsim:
