@@ -656,11 +656,11 @@ def _fit_main(runs: list[Path]) -> int:
         try:
             fits = fit_run(run, progress=lambda f: print(f"{run}: vehicle {f.vehicle} fitted", file=sys.stderr,
                                                          flush=True))
+            per_run[str(run)] = fit_summary(fits)
+            (run / "response_fit.json").write_text(json.dumps(per_run[str(run)], indent=1))
         except (FitError, OSError) as err:
             print(f"sitl.real_autopilots fit: error: {err}", file=sys.stderr)
             return 2
-        per_run[str(run)] = fit_summary(fits)
-        (run / "response_fit.json").write_text(json.dumps(per_run[str(run)], indent=1))
         print(f"{run}:\n{format_fits(fits)}\n  --response {per_run[str(run)]['response']}", file=sys.stderr)
         everything += fits
     print(json.dumps({"runs": per_run, "response": response_spec(everything)}))
