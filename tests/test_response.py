@@ -91,16 +91,17 @@ def test_fit_recovers_known_responses(tmp_path):
 
 
 def test_fit_command_line(tmp_path):
-    """``python -m sitl.real_autopilots fit RUN``: the table on stderr, one JSON line on stdout with the spec,
-    RUN/response_fit.json written; a folder without logs is one line and exit 2."""
+    """``python -m sitl.real_autopilots fit RUN --plot PNG``: the table on stderr, one JSON line on stdout with the
+    spec, RUN/response_fit.json and the figure written; a folder without logs is one line and exit 2."""
     _fly_logs(tmp_path, [{"tau_horizontal_s": 0.5}], seconds=12.0)
-    run = subprocess.run([sys.executable, "-m", "sitl.real_autopilots", "fit", str(tmp_path)], cwd=ROOT,
-                         capture_output=True, text=True, timeout=120)
+    run = subprocess.run([sys.executable, "-m", "sitl.real_autopilots", "fit", str(tmp_path), "--plot",
+                          str(tmp_path / "fig" / "fits.png")], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr
     out = json.loads(run.stdout.strip().splitlines()[-1])
     assert out["response"].startswith("tau_horizontal_s=0.5:0.5,")
     assert json.loads((tmp_path / "response_fit.json").read_text())["vehicles"][0]["tau_horizontal_s"] == 0.5
     assert "quick gain" in run.stderr
+    assert (tmp_path / "fig" / "fits.png").stat().st_size > 5000
     bad = subprocess.run([sys.executable, "-m", "sitl.real_autopilots", "fit", str(tmp_path / "nothing")], cwd=ROOT,
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "Traceback" not in bad.stderr

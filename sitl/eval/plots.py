@@ -178,3 +178,24 @@ def plot_seed_spread(columns: dict[str, dict[str, dict[int, float]]], path: str 
         ax.set(ylabel="success rate", title=point, xlim=(-0.6, len(names) - 0.4))
         ax.grid(alpha=0.3, axis="y")
     return _save(fig, path, title)
+
+
+def plot_response_fits(runs: dict[str, list[dict]], path: str | Path, title: str) -> Path:
+    """Each vehicle's fitted velocity response (``sitl.realtime.response_fit``), one colour per run: lag against drag,
+    and lag against the quick share of a step's speed. ``runs[name]`` is a list of ``VehicleFit`` dicts."""
+    plt = _pyplot()
+    path = Path(path)
+    fig, (ax_d, ax_g) = plt.subplots(1, 2, figsize=(11, 4.5))
+    markers = "osd^v<>P*X"
+    rng = np.random.default_rng(0)  # a small jitter: fits on one grid point would hide each other
+    for k, (name, fits) in enumerate(runs.items()):
+        tau = np.array([f["tau_horizontal_s"] for f in fits]) + rng.uniform(-0.01, 0.01, len(fits))
+        style = dict(marker=markers[k % len(markers)], color=f"C{k % 10}", alpha=0.8, label=name, linestyle="none")
+        ax_d.plot(tau, [f["drag_horizontal_per_s"] for f in fits], **style)
+        ax_g.plot(tau, [f["quick_gain"] for f in fits], **style)
+    ax_d.set(xlabel="horizontal lag tau (s)", ylabel="drag (1/s)")
+    ax_g.set(xlabel="horizontal lag tau (s)", ylabel="quick gain 1 / (1 + drag tau)")
+    for ax in (ax_d, ax_g):
+        ax.grid(alpha=0.3)
+    ax_d.legend(fontsize=7)
+    return _save(fig, path, title)

@@ -647,8 +647,9 @@ def _policy_file(text: str) -> Path:
     return Path(text)
 
 
-def _fit_main(runs: list[Path]) -> int:
-    """``fit``: every run's vehicles, a table per run on stderr, one JSON line on stdout (the spec spanning all)."""
+def _fit_main(runs: list[Path], plot: Path | None = None) -> int:
+    """``fit``: every run's vehicles, a table per run on stderr, one JSON line on stdout (the spec spanning all);
+    ``plot``: a figure of every vehicle's fit."""
     from sitl.realtime.response_fit import FitError, fit_run, fit_summary, format_fits, response_spec
 
     everything, per_run = [], {}
@@ -663,6 +664,12 @@ def _fit_main(runs: list[Path]) -> int:
             return 2
         print(f"{run}:\n{format_fits(fits)}\n  --response {per_run[str(run)]['response']}", file=sys.stderr)
         everything += fits
+    if plot is not None:
+        from sitl.eval.plots import plot_response_fits
+
+        plot_response_fits({str(run): per_run[str(run)]["vehicles"] for run in runs}, plot,
+                           "each vehicle's fitted velocity response")
+        print(f"wrote {plot}", file=sys.stderr)
     print(json.dumps({"runs": per_run, "response": response_spec(everything)}))
     return 0
 
@@ -671,7 +678,7 @@ def main(argv: list[str] | None = None) -> int:
     """``python -m sitl.real_autopilots circle|stop|fit``: run (or fit) and print the measured results as JSON."""
     import argparse
 
-    from sitl.cli_args import ArgumentParser, finite_float, output_dir, positive_float, int_range
+    from sitl.cli_args import ArgumentParser, finite_float, int_range, output_dir, output_file_in_new_dir, positive_float
 
     parser = ArgumentParser(prog="python -m sitl.real_autopilots", description=__doc__,
                             formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -683,6 +690,8 @@ def main(argv: list[str] | None = None) -> int:
                                      "that span them (sitl.realtime.response_fit)")
     fit.add_argument("runs", nargs="+", type=Path, metavar="RUN",
                      help="a run folder of circle or stop (companion_I.jsonl, trace.jsonl); writes RUN/response_fit.json")
+    fit.add_argument("--plot", type=output_file_in_new_dir, default=None, metavar="PNG",
+                     help="also draw every vehicle's fit, one colour per run (lag against drag and quick gain)")
     for p in (circle, stop):
         p.add_argument("--autopilot", choices=KINDS, required=True)
         p.add_argument("--out", type=output_dir, required=True, metavar="DIR", help="logs, traces and summary.json")
@@ -711,7 +720,7 @@ def main(argv: list[str] | None = None) -> int:
     stop.add_argument("--distance", type=positive_float, default=30.0, help="goal distance north in metres (default 30)")
     args = parser.parse_args(argv)
     if args.what == "fit":
-        return _fit_main(args.runs)
+        return _fit_main(args.runs, args.plot)
 
     binary, why = find_autopilot(args.autopilot)
     if binary is None:
