@@ -103,13 +103,19 @@ def circle_layout(n: int, radius_m: float, rotation_deg: float = 0.0) -> tuple[n
 @dataclass
 class PoseTrace:
     """The world's ``--trace`` records: UNIX times [T], world positions [T, n, 3] (NaN: not placed),
-    velocities [T, n, 3], modes and armed states [T][n]."""
+    velocities [T, n, 3], modes and armed states [T][n], headings [T, n] (rad; NaN: not known, or a trace
+    written before the world recorded them)."""
 
     t: np.ndarray
     pos: np.ndarray
     vel: np.ndarray
     mode: list
     armed: list
+    yaw: np.ndarray | None = None  # None: the same NaNs
+
+    def __post_init__(self) -> None:
+        if self.yaw is None:
+            self.yaw = np.full(self.pos.shape[:2], math.nan)
 
     @classmethod
     def from_records(cls, records: list[dict], n: int) -> PoseTrace:
@@ -117,12 +123,16 @@ class PoseTrace:
         nan3 = [math.nan] * 3
         pos = np.array([[p if p is not None else nan3 for p in r["pos_ned"]] for r in rows]).reshape(-1, n, 3)
         vel = np.array([[v if v is not None else nan3 for v in r["vel_ned"]] for r in rows]).reshape(-1, n, 3)
-        return cls(np.array([r["t"] for r in rows]), pos, vel, [r["mode"] for r in rows], [r["armed"] for r in rows])
+        yaw = np.array([[math.nan if y is None else y for y in r.get("yaw_rad", [None] * n)] for r in rows],
+                       dtype=float).reshape(-1, n)
+        return cls(np.array([r["t"] for r in rows]), pos, vel, [r["mode"] for r in rows], [r["armed"] for r in rows],
+                   yaw)
 
     def since(self, t0: float) -> PoseTrace:
         k = self.t >= t0
         idx = np.flatnonzero(k)
-        return PoseTrace(self.t[k], self.pos[k], self.vel[k], [self.mode[i] for i in idx], [self.armed[i] for i in idx])
+        return PoseTrace(self.t[k], self.pos[k], self.vel[k], [self.mode[i] for i in idx], [self.armed[i] for i in idx],
+                         self.yaw[k])
 
 
 def end_speed_mps(trace: PoseTrace, vehicle: int, window_s: float = END_WINDOW_S) -> float:

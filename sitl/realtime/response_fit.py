@@ -25,12 +25,13 @@ spanning the vehicles' fits: the ranges to evaluate (``swarm_test --response``) 
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
+from sitl.realtime.autopilot_sitl import PoseTrace
+from sitl.realtime.mavlink_swarm import JsonLinesTail
 from sitl.sim.dynamics.kinematic import _RESPONSE_FIELDS, KinematicParams, _integrate
 
 #: The grid searched (seconds, 1/s, 1/s^2): wide enough for a stiff racer and for PX4 SIH's default airframe.
@@ -77,19 +78,10 @@ class _Series:
 
 
 def _read_jsonl(path: Path) -> list[dict]:
+    """The records of a JSON-lines log (a line cut short by a kill is left out, as the harness reads them)."""
     if not path.is_file():
         raise FitError(f"{path}: no such file (is this a sitl.real_autopilots run folder?)")
-    lines = path.read_text().splitlines()
-    rows = []
-    for number, line in enumerate(lines, 1):
-        if line.strip():
-            try:
-                rows.append(json.loads(line))
-            except json.JSONDecodeError as err:
-                if number == len(lines):
-                    break  # a last line cut short by a kill: the rest is good
-                raise FitError(f"{path}:{number}: not JSON ({err.msg})") from None
-    return rows
+    return JsonLinesTail(path).read()
 
 
 def vehicles_in(run: Path) -> int:
@@ -102,19 +94,17 @@ def vehicles_in(run: Path) -> int:
     return n
 
 
-def _series(run: Path, vehicle: int, poses: list[dict]) -> _Series:
+def _series(run: Path, vehicle: int, trace: PoseTrace) -> _Series:
     steps = [s for s in _read_jsonl(Path(run) / f"companion_{vehicle}.jsonl")
              if s.get("kind") == "step" and s.get("sent") and s.get("cmd") is not None
              and s.get("hold_point_ned") is None]  # velocity setpoints only; a position target is another law
-    rows = [p for p in poses if p["vel_ned"][vehicle] is not None and p.get("yaw_rad", [None] * (vehicle + 1))[vehicle]
-            is not None]
-    if len(steps) < 2 or len(rows) < 2:
+    rows = np.isfinite(trace.vel[:, vehicle]).all(axis=1) & np.isfinite(trace.yaw[:, vehicle])
+    if len(steps) < 2 or rows.sum() < 2:
         raise FitError(f"{run}: vehicle {vehicle} has no velocity setpoints or no trace with its heading to fit")
     t_cmd = np.array([s["t"] for s in steps])
     origin = t_cmd[0]  # times from the first command: UNIX seconds in float64 keep only ~0.2 us
-    return _Series(t_cmd - origin, np.array([s["cmd"] for s in steps], float), np.array([p["t"] for p in rows]) - origin,
-                   np.array([p["vel_ned"][vehicle] for p in rows], float),
-                   np.unwrap(np.array([p["yaw_rad"][vehicle] for p in rows], float)))
+    return _Series(t_cmd - origin, np.array([s["cmd"] for s in steps], float), trace.t[rows] - origin,
+                   trace.vel[rows, vehicle], np.unwrap(trace.yaw[rows, vehicle]))
 
 
 def _segments(t_cmd: np.ndarray) -> list[tuple[int, int]]:
@@ -137,6 +127,7 @@ def _replay(s: _Series, a: int, b: int, params: dict[str, np.ndarray], delay_s: 
     cmd, active = np.zeros((rows, 3)), np.ones(rows, dtype=np.bool_)
     arrays = [np.ascontiguousarray(params[name], dtype=np.float64) for name in _RESPONSE_FIELDS]
     yaw_at = np.interp(grid, s.t, s.yaw)
+    delays, row_delay = np.unique(delay_s, return_inverse=True)  # few distinct delays: look each up once a step
     sample_step = np.clip(np.round((s.t[inside] - t0) / STEP_S).astype(int), 0, len(grid) - 1)
     wanted = np.zeros(len(grid), dtype=bool)
     wanted[sample_step] = True
@@ -145,7 +136,7 @@ def _replay(s: _Series, a: int, b: int, params: dict[str, np.ndarray], delay_s: 
     for k, tk in enumerate(grid):
         # each row's command is the one the companion had sent delay_s before (zero-order hold)
         # (+1 us: a command logged at exactly tk counts as sent)
-        idx = np.clip(np.searchsorted(s.t_cmd, tk - delay_s + 1e-6, side="right") - 1, a, b - 1)
+        idx = np.clip(np.searchsorted(s.t_cmd, tk - delays + 1e-6, side="right") - 1, a, b - 1)[row_delay]
         cmd[:, 0] = s.cmd[idx, 0]
         cmd[:, 1] = s.cmd[idx, 1]
         yaw[:] = yaw_at[k]  # the heading as flown; the fit is about the velocity loop
@@ -158,9 +149,9 @@ def _replay(s: _Series, a: int, b: int, params: dict[str, np.ndarray], delay_s: 
     return err_h, err_v, len(measured)
 
 
-def fit_vehicle(run: Path, vehicle: int, poses: list[dict]) -> VehicleFit:
-    """The best-fitting response of ``vehicle`` in the run folder ``run`` (``poses``: the trace's pose records)."""
-    s = _series(run, vehicle, poses)
+def fit_vehicle(run: Path, vehicle: int, trace: PoseTrace) -> VehicleFit:
+    """The best-fitting response of ``vehicle`` in the run folder ``run`` (``trace``: the world's trace of it)."""
+    s = _series(run, vehicle, trace)
     segments = _segments(s.t_cmd)
     if not segments:
         raise FitError(f"{run}: vehicle {vehicle} never streamed velocity setpoints for {MIN_SEGMENT_S:g} s")
@@ -195,10 +186,12 @@ def fit_vehicle(run: Path, vehicle: int, poses: list[dict]) -> VehicleFit:
 def fit_run(run: Path, vehicles: list[int] | None = None, progress=None) -> list[VehicleFit]:
     """Every vehicle's fit in a ``sitl.real_autopilots`` run folder (``progress``: called with each fit)."""
     run = Path(run)
-    poses = [r for r in _read_jsonl(run / "trace.jsonl") if r.get("event") == "pose"]
+    records = _read_jsonl(run / "trace.jsonl")
+    n = vehicles_in(run)
+    trace = PoseTrace.from_records(records, n)
     fits = []
-    for i in vehicles if vehicles is not None else range(vehicles_in(run)):
-        fits.append(fit_vehicle(run, i, poses))
+    for i in vehicles if vehicles is not None else range(n):
+        fits.append(fit_vehicle(run, i, trace))
         if progress is not None:
             progress(fits[-1])
     return fits
