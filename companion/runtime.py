@@ -119,6 +119,13 @@ HAND_OVER_TIMEOUT_S = 5.0
 #: default 1000 makes it descend into the ground, issue 18 item 10, and so would a pilot's
 #: stick left low). The pilot takes over from either by selecting any mode.
 HOLD_MODES = {AutopilotKind.PX4: "AUTO.LOITER", AutopilotKind.ARDUPILOT: "BRAKE"}
+#: A gap between two ticks that both stream setpoints longer than this is a stall of this computer, logged
+#: (``stall``) with its length: autopilots leave OFFBOARD/GUIDED when setpoints stop (PX4 after COM_OF_LOSS_T,
+#: 1 s by default; the setpoints go out at 10 Hz). Half of PX4's limit warns before the failsafe would fire.
+STALL_WARN_S = 0.5
+#: A mode change this soon after a stall is reported as the autopilot's offboard-loss failsafe, not a pilot's
+#: switch (PX4 switches at COM_OF_LOSS_T after the last setpoint; the heartbeat shows it within ~1 s).
+STALL_TAKEOVER_WINDOW_S = 3.0
 
 
 class ExitCode(IntEnum):
@@ -256,6 +263,8 @@ class Companion:
         self.period_dev_s = RunningStats()
         self.overruns = 0
         self._last_tick_s: float | None = None
+        self._streamed_last_tick = False  # the previous scheduled tick sent a setpoint
+        self._last_stall: tuple[float, float] | None = None  # (when it ended, its length in s)
         self._last_summary_s = time.monotonic()
         self.holds = 0
         self.policy_steps = 0
@@ -463,6 +472,11 @@ class Companion:
             late = now - scheduled
             period = None if self._last_tick_s is None else now - self._last_tick_s
             self._last_tick_s = now
+            if period is not None and period > STALL_WARN_S and self._streamed_last_tick:
+                self._last_stall = (now, period)
+                self._event("stall", f"this computer stalled: no setpoint for {period:.2f} s (autopilots leave "
+                            "OFFBOARD/GUIDED when setpoints stop: PX4 after COM_OF_LOSS_T, 1 s by default)",
+                            level="warning", gap_s=round(period, 3))
             self.tick_late_s.append(max(late, 0.0))
             if period is not None:
                 self.period_dev_s.append(abs(period - self.period_s))
@@ -477,6 +491,8 @@ class Companion:
         sent_s = None
         if command is not None:
             sent_s = self._send(command)
+        if not extra:
+            self._streamed_last_tick = command is not None
         frame = info.get("frame")
         if info.get("policy_step") and sent_s is not None and frame is not None:
             self.latency_s.append(sent_s - frame.arrival_s)
@@ -551,10 +567,10 @@ class Companion:
                                                FlightPhase.LINK_LOST):
             hb = self.link.heartbeat
             if not hb.in_companion_mode:
-                self._hand_back(f"pilot took over: mode {hb.mode}; stopped commanding "
-                                "(restart the companion to engage again)")
+                who = self._who_took_over(now)
+                self._hand_back(f"{who}: mode {hb.mode}; stopped commanding (restart the companion to engage again)")
                 if self.config.exit_on_arrival:
-                    self._finish(ExitCode.PILOT_TOOK_OVER, f"pilot took over (mode {hb.mode})")
+                    self._finish(ExitCode.PILOT_TOOK_OVER, f"{who} (mode {hb.mode})")
                 return None
         if (self.config.timeout_s is not None and now - self._started_s > self.config.timeout_s
                 and self.phase not in (FlightPhase.HOLDING_AT_GOAL, FlightPhase.LANDED)):
@@ -925,6 +941,18 @@ class Companion:
             else:
                 self._set_phase(FlightPhase.WAITING_FOR_TELEMETRY, "link back")
         return None
+
+    def _who_took_over(self, now: float) -> str:
+        """Who most likely changed the mode: the autopilot's setpoint-loss failsafe right after a stall, else the pilot.
+
+        The heartbeat carries only the new mode; PX4 gives its failsafe's reason in an EVENT message whose text needs
+        the autopilot's event metadata, so the companion names what it knows itself: its own stall.
+        """
+        if self._last_stall is not None and now - self._last_stall[0] <= STALL_TAKEOVER_WINDOW_S:
+            ended_s, gap_s = self._last_stall
+            return (f"autopilot took over (its setpoint-loss failsafe, most likely: {now - ended_s:.1f} s after "
+                    f"this computer stalled {gap_s:.2f} s without a setpoint)")
+        return "pilot took over"
 
     def _hand_back(self, why: str) -> None:
         """The pilot has the vehicle, for good: no setpoint, mode or arming request ever again."""

@@ -9,6 +9,8 @@ The flying scenarios start together (:class:`ScenarioPool`) so their start-ups o
 
 from __future__ import annotations
 
+import os
+import signal
 import subprocess
 import sys
 import time
@@ -52,7 +54,7 @@ def _flying_starter(nan_policy: bool = False):
 def rigs(request, tmp_path_factory):
     pool = ScenarioPool(request, tmp_path_factory, {
         name: _flying_starter(nan_policy=name == "nan")
-        for name in ("camera", "odometry", "malformed", "pilot", "nan", "link")})
+        for name in ("camera", "odometry", "malformed", "pilot", "stall", "nan", "link")})
     yield pool
     pool.stop_all()
 
@@ -168,6 +170,31 @@ def test_pilot_switches_mode(rigs):
     modes = [r["mode"] for r in rig.vehicle_records() if r["event"] == "mode"]
     assert modes[-1] == "POSCTL" and modes.count("OFFBOARD") == 1  # never requested back
     assert "pilot took over" in procs.stderr("companion")
+
+
+@scenario("stall")
+def test_companion_stall_is_named_when_the_autopilot_takes_over(rigs):
+    """The computer stops the companion 1.6 s (SIGSTOP): PX4's offboard-loss failsafe (1 s) switches to a hold mode;
+    the companion logs its own stall and hands back naming it, not a pilot."""
+    rig, gcs = _flying(rigs, "stall")
+    procs = rig.procs
+    with procs:
+        os.kill(rig.companion.pid, signal.SIGSTOP)
+        try:
+            time.sleep(1.6)
+        finally:
+            os.kill(rig.companion.pid, signal.SIGCONT)
+        code = rig.wait_companion(10)
+        gcs.close()
+    assert code == 6  # PILOT_TOOK_OVER (with --exit-on-arrival): the takeover is final, whoever made it
+    records = rig.companion_records()
+    stalls = [r for r in records if r.get("event") == "stall"]
+    assert stalls and 1.5 <= stalls[0]["gap_s"] < 3.0, stalls
+    handed = [r for r in records if r.get("event") == "phase" and r.get("to") == "handed_back"]
+    assert handed and "autopilot took over (its setpoint-loss failsafe" in handed[0]["message"], handed
+    assert "mode AUTO.LOITER" in handed[0]["message"]
+    assert [r["mode"] for r in rig.vehicle_records() if r["event"] == "mode"][-1] == "AUTO.LOITER"
+    assert "this computer stalled" in procs.stderr("companion")
 
 
 @scenario("nan")

@@ -537,6 +537,12 @@ def fly_circle(kind: str, binary: Path, n: int, out: Path, radius_m: float = 12.
                 "goals_sent_within_s": round(float(first_sent_s.max()), 4), "autopilot_nice": autopilot_nice,
                 "goal_sent_s": np.round(first_sent_s, 4).tolist()}
     summary["response_fit"] = _fit_or_why(out)
+    summary["autopilot_failsafes"] = failsafes = _failsafes_or_why(out, t0)
+    # A vehicle the autopilot took from its companion before it arrived did not fly the policy: the run does not
+    # measure the policy for it (on a 2-core machine, mostly PX4's offboard-loss failsafe after a stall).
+    summary["vehicles_failsafe_before_arrival"] = None if isinstance(failsafes, str) else sorted({
+        f["vehicle"] for f in failsafes if f.get("t_after_s") is not None and 0.0 <= f["t_after_s"] <= (
+            time_limit_s if summary["flight_s"][f["vehicle"]] is None else summary["flight_s"][f["vehicle"]])})
     write_summary(out, summary)
     return summary
 
@@ -549,6 +555,18 @@ def _fit_or_why(out: Path) -> dict | str:
         return fit_summary(fit_run(out))
     except FitError as err:
         return f"not fitted: {err}"
+
+
+def _failsafes_or_why(out: Path, since_unix_s: float) -> list[dict] | str:
+    """Every autopilot failsafe of the run with its reason (sitl.realtime.autopilot_events), or why they are unknown.
+
+    Each record's ``t_after_s`` counts from ``since_unix_s`` (the goals, or the signal)."""
+    from sitl.realtime.autopilot_events import EventsError, failsafe_summary, run_failsafes
+
+    try:
+        return failsafe_summary(run_failsafes(out), since_unix_s)
+    except EventsError as err:
+        return f"not read: {err}"
 
 
 def _circle_summary(kind, n, radius_m, altitude_m, rotation_deg, tr: PoseTrace, goals, offsets, arrived_t, t0,
@@ -619,6 +637,7 @@ def fly_and_stop(kind: str, binary: Path, out: Path, sig: int, distance_m: float
         "climb_m": round(float(-(np.nanmin(tr.pos[:, 0, 2]) - pos_sig[2])), 2),
         "modes_after": list(dict.fromkeys(m[0] for m in tr.mode)), "companion_exit": exit_code,
         "params": params or {}, "watch_s": watch_s, "policy": str(policy), "camera": camera or "the world's default",
+        "autopilot_failsafes": _failsafes_or_why(out, t_sig),
     }
     write_summary(out, summary)
     return summary
@@ -684,8 +703,27 @@ def _fit_main(runs: list[Path], plot: Path | None = None) -> int:
     return 0
 
 
+def _events_main(runs: list[Path]) -> int:
+    """``events``: every run's autopilot failsafes with their reasons on stderr, one JSON line on stdout;
+    each run's also in RUN/autopilot_failsafes.json."""
+    from sitl.realtime.autopilot_events import EventsError, failsafe_summary, format_failsafes, run_failsafes
+
+    per_run = {}
+    for run in runs:
+        try:
+            failsafes = run_failsafes(run)
+            per_run[str(run)] = failsafe_summary(failsafes)
+            (run / "autopilot_failsafes.json").write_text(json.dumps(per_run[str(run)], indent=1))
+        except (EventsError, OSError) as err:
+            print(f"sitl.real_autopilots events: error: {err}", file=sys.stderr)
+            return 2
+        print(f"{run}:\n{format_failsafes(failsafes)}", file=sys.stderr)
+    print(json.dumps({"runs": per_run}))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
-    """``python -m sitl.real_autopilots circle|stop|fit``: run (or fit) and print the measured results as JSON."""
+    """``python -m sitl.real_autopilots circle|stop|fit|events``: run (or fit) and print the measured results as JSON."""
     import argparse
 
     from sitl.cli_args import ArgumentParser, finite_float, int_range, output_dir, output_file_in_new_dir, positive_float
@@ -702,6 +740,10 @@ def main(argv: list[str] | None = None) -> int:
                      help="a run folder of circle or stop (companion_I.jsonl, trace.jsonl); writes RUN/response_fit.json")
     fit.add_argument("--plot", type=output_file_in_new_dir, default=None, metavar="PNG",
                      help="also draw every vehicle's fit, one colour per run (lag against drag and quick gain)")
+    events = sub.add_parser("events", help="every autopilot failsafe of finished runs, with its reason (PX4: decoded "
+                                           "from its ULog with pyulog; ArduCopter: its STATUSTEXT in the companions' "
+                                           "logs); writes RUN/autopilot_failsafes.json")
+    events.add_argument("runs", nargs="+", type=Path, metavar="RUN", help="a run folder of circle or stop")
     for p in (circle, stop):
         p.add_argument("--autopilot", choices=KINDS, required=True)
         p.add_argument("--out", type=output_dir, required=True, metavar="DIR", help="logs, traces and summary.json")
@@ -731,6 +773,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.what == "fit":
         return _fit_main(args.runs, args.plot)
+    if args.what == "events":
+        return _events_main(args.runs)
 
     binary, why = find_autopilot(args.autopilot)
     if binary is None:
