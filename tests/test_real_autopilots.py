@@ -29,8 +29,8 @@ import pytest
 
 from companion.spec import DEFAULT_TASK_SPEC
 from sitl.realtime.autopilot_sitl import (ARDUCOPTER, BINARY_ENV, KINDS, PX4, STOPPED_MPS, PoseTrace, RealSwarm,
-                                          circle_layout, end_speed_mps, find_autopilot, fly_and_stop, fly_circle,
-                                          pairwise_min_distance)
+                                          _circle_summary, circle_layout, end_speed_mps, find_autopilot, fly_and_stop,
+                                          fly_circle, pairwise_min_distance)
 
 SIGTERM_STOP_M = 2.0  # docs/real_autopilots.md: a SIGTERM'd companion's vehicle stops within this
 SIGKILL_STOP_M = 4.0  # ... and after SIGKILL, with the recommended failsafe parameters
@@ -235,6 +235,21 @@ def test_circle_layout_sends_every_vehicle_to_its_antipode():
     on_ground = np.concatenate([spawns, np.zeros((8, 1))], axis=1)[None]  # one trace sample [1, 8, 3]
     closest, _pair = pairwise_min_distance(on_ground)
     assert closest == pytest.approx(2 * 12.0 * np.sin(np.pi / 8))  # neighbours' chord
+
+
+def test_the_circles_closest_pair_counts_only_what_the_companions_flew():
+    """Two vehicles that meet only after PX4's failsafe took both (AUTO.RTL) did not meet under the policy: the
+    summary's closest pair is the companions' (session 55 reported such a 0.41 m pair as the policy's)."""
+    t = np.arange(0.0, 10.0, 0.1)
+    pos = np.zeros((t.size, 2, 3))
+    pos[:, 1, 0] = np.where(t < 5.0, 3.0, 0.3)  # 3 m apart, then 0.3 m once both are in AUTO.RTL
+    modes = [["OFFBOARD"] * 2 if tk < 5.0 else ["AUTO.RTL"] * 2 for tk in t]
+    trace = PoseTrace(t, pos, np.zeros_like(pos), modes, [[True] * 2] * t.size)
+    goals = np.zeros((2, 3))
+    summary = _circle_summary(PX4, 2, 10.0, 8.0, 0.0, trace, goals, np.zeros((2, 3)), np.full(2, np.nan), 0.0,
+                              10.0, 1.0, [])
+    assert summary["closest_pair_m"] == pytest.approx(3.0) and summary["collisions"] == 0
+    assert summary["closest_pair_any_mode_m"] == pytest.approx(0.3)
 
 
 def test_the_command_line_refuses_a_missing_binary_in_one_line(tmp_path):

@@ -569,9 +569,23 @@ def _failsafes_or_why(out: Path, since_unix_s: float) -> list[dict] | str:
         return f"not read: {err}"
 
 
+#: The modes in which an autopilot follows its companion's setpoints (PX4, ArduPilot): the policy flies only there.
+COMPANION_MODES = ("OFFBOARD", "GUIDED")
+
+
+def under_companion(tr: PoseTrace) -> np.ndarray:
+    """[T, n] True where the vehicle's autopilot was in its companion mode: not taken by a failsafe or a pilot."""
+    return np.array([[m in COMPANION_MODES for m in row] for row in tr.mode], dtype=bool).reshape(tr.pos.shape[:2])
+
+
 def _circle_summary(kind, n, radius_m, altitude_m, rotation_deg, tr: PoseTrace, goals, offsets, arrived_t, t0,
                     settle_s, ready_s, world_status) -> dict:
-    closest, pair = pairwise_min_distance(tr.pos)
+    # The policy's closest pair: only while both vehicles fly their companions' setpoints. Once an autopilot's
+    # failsafe takes a vehicle (RTL, Hold), the autopilot flies it, not the policy (session 55: a 0.41 m pair
+    # between two vehicles both in AUTO.RTL, 86 s after the goals).
+    flown = under_companion(tr) if len(tr.t) else np.zeros(tr.pos.shape[:2], dtype=bool)
+    closest, pair = pairwise_min_distance(np.where(flown[:, :, None], tr.pos, math.nan))
+    closest_any, pair_any = pairwise_min_distance(tr.pos)
     settled = []
     for i in range(n):
         if math.isnan(arrived_t[i]):
@@ -586,6 +600,7 @@ def _circle_summary(kind, n, radius_m, altitude_m, rotation_deg, tr: PoseTrace, 
         "arrived": int(np.isfinite(arrived_t).sum()),
         "collisions": int(closest < 2 * DEFAULT_TASK_SPEC.collision_radius_m),
         "closest_pair_m": round(closest, 3), "closest_pair": list(pair),
+        "closest_pair_any_mode_m": round(closest_any, 3), "closest_pair_any_mode": list(pair_any),
         "flight_s": [None if math.isnan(a) else round(a - t0, 1) for a in arrived_t],
         "settled_error_m": settled, "settle_s": settle_s,
         "origin_offsets_ned": np.round(offsets, 3).tolist(), "ready_s": round(ready_s, 1),
