@@ -318,9 +318,15 @@ def test_the_same_sweep_joins_an_existing_cluster_by_its_address(tmp_path):
         table = json.loads((out / "sweep.json").read_text())
         assert table["runs"][0]["result"]["eval_success"]["paper:random-medium"] is not None
     finally:
-        os.killpg(head.pid, signal.SIGTERM)  # the head and every Ray process it started
+        # The head and every Ray process it started. A graceful `--block` head takes ~30 s to wind down (measured
+        # in session 56: 31 of this test's 46 s), so after 5 s the rest of the group is killed.
+        os.killpg(head.pid, signal.SIGTERM)
         try:
-            head.wait(timeout=60)
+            head.wait(timeout=5)
         except subprocess.TimeoutExpired:
+            pass
+        try:
             os.killpg(head.pid, signal.SIGKILL)
-            head.wait(timeout=30)
+        except ProcessLookupError:
+            pass  # the whole group had gone
+        head.wait(timeout=30)
