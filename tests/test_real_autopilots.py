@@ -22,7 +22,9 @@ from __future__ import annotations
 import json
 import os
 import signal
+import subprocess
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -252,8 +254,21 @@ def test_the_circles_closest_pair_counts_only_what_the_companions_flew():
     assert summary["closest_pair_any_mode_m"] == pytest.approx(0.3)
 
 
+def test_companion_realtime_uses_the_vehicles_priority_and_starts_companions_under_it(tmp_path):
+    """--companion-realtime mirrors systemd/companion.service (SCHED_FIFO at its priority), and really applies it."""
+    from sitl.realtime.autopilot_sitl import COMPANION_FIFO_PRIORITY, realtime_unavailable
+
+    unit = (Path(__file__).resolve().parents[1] / "systemd" / "companion.service").read_text()
+    assert "CPUSchedulingPolicy=fifo" in unit and f"CPUSchedulingPriority={COMPANION_FIFO_PRIORITY}" in unit
+    why = realtime_unavailable()
+    if why is not None:
+        pytest.skip(why)
+    done = subprocess.run(["chrt", "-f", str(COMPANION_FIFO_PRIORITY), "chrt", "-p", "0"], capture_output=True,
+                          text=True, timeout=10)  # the policy a child started that way reports for itself
+    assert "SCHED_FIFO" in done.stdout and f"priority: {COMPANION_FIFO_PRIORITY}" in done.stdout, done.stdout
+
+
 def test_the_command_line_refuses_a_missing_binary_in_one_line(tmp_path):
-    import subprocess
     import sys
 
     env = dict(os.environ, SWARMNAV_PX4=str(tmp_path / "nothing"))
@@ -267,7 +282,6 @@ def test_the_command_line_refuses_a_missing_binary_in_one_line(tmp_path):
 def test_the_command_line_refuses_a_model_the_companions_would_refuse_before_starting_anything(tmp_path):
     """``--model``: a file the companion could not fly is refused in one line, exit 2, before any autopilot
     starts (no run folder is made); the bundled file is the default."""
-    import subprocess
     import sys
 
     from sitl.realtime.autopilot_sitl import DEFAULT_POLICY
@@ -295,7 +309,6 @@ def test_autopilot_nice_lowers_only_the_autopilots_priority(tmp_path):
 @pytest.mark.parametrize("argv, message", [
     (["--autopilot-nice", "25"], "--autopilot-nice"), (["--face-goal", "0"], "--face-goal must be seconds")])
 def test_circle_options_refuse_bad_values_in_one_line(argv, message, tmp_path):
-    import subprocess
     import sys
 
     done = subprocess.run([sys.executable, "-m", "sitl.real_autopilots", "circle", "--autopilot", "px4", "--out",

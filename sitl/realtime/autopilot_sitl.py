@@ -30,6 +30,7 @@ import contextlib
 import json
 import math
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -77,6 +78,20 @@ DEFAULT_POLICY = Path(__file__).resolve().parents[2] / "models" / "policy.pt"
 
 class SitlError(RuntimeError):
     """A real-autopilot run could not go on (a process died, something never came), with the reason."""
+
+
+#: The companion's real-time priority on the vehicle (systemd/companion.service CPUSchedulingPriority).
+COMPANION_FIFO_PRIORITY = 20
+
+
+def realtime_unavailable() -> str | None:
+    """Why companions cannot run under SCHED_FIFO here (no chrt, no permission), or None if they can."""
+    if shutil.which("chrt") is None:
+        return "chrt (util-linux) is not installed"
+    done = subprocess.run(["chrt", "-f", str(COMPANION_FIFO_PRIORITY), "true"], capture_output=True, text=True)
+    if done.returncode != 0:
+        return f"SCHED_FIFO refused ({done.stderr.strip() or 'exit ' + str(done.returncode)}): run as root or grant CAP_SYS_NICE"
+    return None
 
 
 def find_autopilot(kind: str) -> tuple[Path | None, str]:
@@ -192,7 +207,7 @@ class RealSwarm:
     def __init__(self, kind: str, binary: Path, spawns_ne: np.ndarray, out: Path,
                  home: tuple[float, float, float] | None = None, params: dict[str, float] | None = None,
                  camera_hz: float = 30.0, policy: Path = DEFAULT_POLICY, camera: str | None = None,
-                 autopilot_nice: int = 0) -> None:
+                 autopilot_nice: int = 0, companion_realtime: bool = False) -> None:
         if kind not in KINDS:
             raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
         self.kind, self.binary, self.out = kind, Path(binary), Path(out)
@@ -205,6 +220,9 @@ class RealSwarm:
         # > 0: the autopilots run at a lower CPU priority than the companions and the world (on a real vehicle each
         # has its own processor; on one small machine they compete, and a companion that misses its tick holds)
         self.autopilot_nice = autopilot_nice
+        # True: every companion under SCHED_FIFO priority COMPANION_FIFO_PRIORITY, as systemd/companion.service runs
+        # it on the vehicle; the loop then preempts the autopilots and the world instead of waiting for a turn.
+        self.companion_realtime = companion_realtime
         self.out.mkdir(parents=True, exist_ok=True)
         self.procs = Children()
         self.offsets: np.ndarray | None = None  # each vehicle's local origin in the world frame, from the world
@@ -344,7 +362,8 @@ class RealSwarm:
         return np.asarray(goal_world_ned, dtype=np.float64) - self.offsets[i]
 
     def start_companion(self, i: int, *extra: str, takeoff_m: float = 8.0) -> None:
-        argv = [*companion_command(), "--connect", self.companion_connection(i), "--camera",
+        fifo = ["chrt", "-f", str(COMPANION_FIFO_PRIORITY)] if self.companion_realtime else []
+        argv = [*fifo, *companion_command(), "--connect", self.companion_connection(i), "--camera",
                 f"sitl:{DEPTH_PORT_BASE + i}:{i}", "--model", str(self.policy), "--arm", "--takeoff", f"{takeoff_m:g}",
                 "--heartbeat-timeout", "60", "--log", str(self.companion_log(i)), *extra]
         self.procs.start(f"companion_{i}", argv, self.out / f"companion_{i}.out")
@@ -475,7 +494,7 @@ def fly_circle(kind: str, binary: Path, n: int, out: Path, radius_m: float = 12.
                rotation_deg: float = 0.0, time_limit_s: float = 60.0, ready_timeout_s: float = 240.0,
                settle_s: float = 10.0, params: dict[str, float] | None = None, status=print,
                policy: Path = DEFAULT_POLICY, camera: str | None = None, face_goal_s: float | None = None,
-               autopilot_nice: int = 0) -> dict:
+               autopilot_nice: int = 0, companion_realtime: bool = False) -> dict:
     """A circle of ``n`` vehicles flying to their antipodes together; the measured results.
 
     The vehicles spawn facing north, as SITL spawns them; with ``face_goal_s`` every companion turns to face its goal
@@ -490,7 +509,7 @@ def fly_circle(kind: str, binary: Path, n: int, out: Path, radius_m: float = 12.
     goals = np.concatenate([goals_ne - spawns[0], np.full((n, 1), -altitude_m)], axis=1)
     started = time.monotonic()
     with RealSwarm(kind, binary, spawns_rel, out, params=params, policy=policy, camera=camera,
-                   autopilot_nice=autopilot_nice) as swarm:
+                   autopilot_nice=autopilot_nice, companion_realtime=companion_realtime) as swarm:
         swarm.start_autopilots()
         swarm.start_world()
         offsets = swarm.wait_tracking(ready_timeout_s)
@@ -535,6 +554,7 @@ def fly_circle(kind: str, binary: Path, n: int, out: Path, radius_m: float = 12.
                 "start_altitude_m": np.round(-at_goals[:, 2], 2).tolist()}
     summary |= {"policy": str(policy), "camera": camera or "the world's default", "face_goal_s": face_goal_s,
                 "goals_sent_within_s": round(float(first_sent_s.max()), 4), "autopilot_nice": autopilot_nice,
+                "companion_scheduling": f"SCHED_FIFO {COMPANION_FIFO_PRIORITY}" if companion_realtime else "default",
                 "goal_sent_s": np.round(first_sent_s, 4).tolist()}
     summary["response_fit"] = _fit_or_why(out)
     summary["autopilot_failsafes"] = failsafes = _failsafes_or_why(out, t0)
@@ -781,6 +801,11 @@ def main(argv: list[str] | None = None) -> int:
     circle.add_argument("--autopilot-nice", type=int_range(0, 19), default=0, metavar="N",
                         help="run the autopilots at CPU niceness N (default 0): on a small machine, lower than the "
                              "companions and the world, as each has its own processor on a real vehicle")
+    circle.add_argument("--companion-realtime", action="store_true",
+                        help=f"run every companion under SCHED_FIFO priority {COMPANION_FIFO_PRIORITY} (chrt), as "
+                             "systemd/companion.service does on the vehicle: on a small machine a companion that "
+                             "waits for the CPU sends no setpoint, and PX4's offboard-loss failsafe takes the vehicle "
+                             "after 1 s (needs root or CAP_SYS_NICE)")
     add_face_goal_argument(circle, help="every companion turns to face its goal first and flies SECONDS after the goals "
                                         f"(companion --face-goal; {DEFAULT_FACE_GOAL_S:g} s alone)")
     stop.add_argument("--signal", choices=("TERM", "KILL", "INT"), default="TERM")
@@ -795,6 +820,9 @@ def main(argv: list[str] | None = None) -> int:
     if binary is None:
         print(f"sitl.real_autopilots: error: {why}", file=sys.stderr)
         return 1
+    if getattr(args, "companion_realtime", False) and (why := realtime_unavailable()):
+        print(f"sitl.real_autopilots: error: --companion-realtime: {why}", file=sys.stderr)
+        return 2
     params = dict(args.param)
 
     def status(text: str) -> None:
@@ -805,7 +833,7 @@ def main(argv: list[str] | None = None) -> int:
             summary = fly_circle(args.autopilot, binary, args.n, args.out, args.radius, args.altitude, args.rotation,
                                  args.time_limit, args.ready_timeout, params=params, status=status,
                                  policy=args.model, camera=args.camera, face_goal_s=args.face_goal,
-                                 autopilot_nice=args.autopilot_nice)
+                                 autopilot_nice=args.autopilot_nice, companion_realtime=args.companion_realtime)
         else:
             summary = fly_and_stop(args.autopilot, binary, args.out, getattr(signal, f"SIG{args.signal}"),
                                    args.distance, args.altitude, ready_timeout_s=args.ready_timeout, params=params,
