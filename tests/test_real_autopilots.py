@@ -252,6 +252,7 @@ def test_the_circles_closest_pair_counts_only_what_the_companions_flew():
                               10.0, 1.0, [])
     assert summary["closest_pair_m"] == pytest.approx(3.0) and summary["collisions"] == 0
     assert summary["closest_pair_any_mode_m"] == pytest.approx(0.3)
+    assert summary["closest_pair_t_after_s"] < 5.0  # when the companions' pair was closest
 
 
 def test_companion_realtime_uses_the_vehicles_priority_and_starts_companions_under_it(tmp_path):

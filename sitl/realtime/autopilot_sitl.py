@@ -557,6 +557,7 @@ def fly_circle(kind: str, binary: Path, n: int, out: Path, radius_m: float = 12.
                 "companion_scheduling": f"SCHED_FIFO {COMPANION_FIFO_PRIORITY}" if companion_realtime else "default",
                 "goal_sent_s": np.round(first_sent_s, 4).tolist()}
     summary["response_fit"] = _fit_or_why(out)
+    summary["companion_stalls"] = companion_stalls(out, n, t0)
     summary["autopilot_failsafes"] = failsafes = _failsafes_or_why(out, t0)
     # A vehicle the autopilot took from its companion before it arrived did not fly the policy: the run does not
     # measure the policy for it (on a 2-core machine, mostly PX4's offboard-loss failsafe after a stall).
@@ -575,6 +576,17 @@ def _fit_or_why(out: Path) -> dict | str:
         return fit_summary(fit_run(out))
     except FitError as err:
         return f"not fitted: {err}"
+
+
+def companion_stalls(out: Path, n: int, since_unix_s: float) -> list[dict]:
+    """Every companion's logged stalls (``stall``: its loop went more than 0.5 s without a setpoint), with the time
+    after ``since_unix_s``: a stall near a close encounter means the policy was not flying then."""
+    stalls = []
+    for i in range(n):
+        for r in JsonLinesTail(out / f"companion_{i}.jsonl").read():
+            if r.get("event") == "stall":
+                stalls.append({"vehicle": i, "t_after_s": round(r["t"] - since_unix_s, 2), "gap_s": r.get("gap_s")})
+    return sorted(stalls, key=lambda r: r["t_after_s"])
 
 
 def _failsafes_or_why(out: Path, since_unix_s: float) -> list[dict] | str:
@@ -596,6 +608,16 @@ COMPANION_MODES = ("OFFBOARD", "GUIDED")
 def under_companion(tr: PoseTrace) -> np.ndarray:
     """[T, n] True where the vehicle's autopilot was in its companion mode: not taken by a failsafe or a pilot."""
     return np.array([[m in COMPANION_MODES for m in row] for row in tr.mode], dtype=bool).reshape(tr.pos.shape[:2])
+
+
+def _when_closest(tr: PoseTrace, flown: np.ndarray, pair: tuple[int, int], t0: float) -> float | None:
+    """Seconds after ``t0`` at which ``pair`` came closest while both flew their companions' setpoints."""
+    a, b = pair
+    if a < 0 or not len(tr.t):
+        return None
+    d = np.where(flown[:, a] & flown[:, b], np.linalg.norm(tr.pos[:, a] - tr.pos[:, b], axis=1), np.inf)
+    d = np.where(np.isfinite(d), d, np.inf)
+    return round(float(tr.t[int(np.argmin(d))] - t0), 2) if np.isfinite(d).any() else None
 
 
 def _circle_summary(kind, n, radius_m, altitude_m, rotation_deg, tr: PoseTrace, goals, offsets, arrived_t, t0,
@@ -620,6 +642,7 @@ def _circle_summary(kind, n, radius_m, altitude_m, rotation_deg, tr: PoseTrace, 
         "arrived": int(np.isfinite(arrived_t).sum()),
         "collisions": int(closest < 2 * DEFAULT_TASK_SPEC.collision_radius_m),
         "closest_pair_m": round(closest, 3), "closest_pair": list(pair),
+        "closest_pair_t_after_s": _when_closest(tr, flown, pair, t0),
         "closest_pair_any_mode_m": round(closest_any, 3), "closest_pair_any_mode": list(pair_any),
         "flight_s": [None if math.isnan(a) else round(a - t0, 1) for a in arrived_t],
         "settled_error_m": settled, "settle_s": settle_s,
