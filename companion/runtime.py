@@ -119,7 +119,7 @@ HAND_OVER_TIMEOUT_S = 5.0
 #: default 1000 makes it descend into the ground, issue 18 item 10, and so would a pilot's
 #: stick left low). The pilot takes over from either by selecting any mode.
 HOLD_MODES = {AutopilotKind.PX4: "AUTO.LOITER", AutopilotKind.ARDUPILOT: "BRAKE"}
-#: A gap between two ticks that both stream setpoints longer than this is a stall of this computer, logged
+#: A gap between two setpoints sent while streaming longer than this is a stall of this computer, logged
 #: (``stall``) with its length: autopilots leave OFFBOARD/GUIDED when setpoints stop (PX4 after COM_OF_LOSS_T,
 #: 1 s by default; the setpoints go out at 10 Hz). Half of PX4's limit warns before the failsafe would fire.
 STALL_WARN_S = 0.5
@@ -472,11 +472,14 @@ class Companion:
             late = now - scheduled
             period = None if self._last_tick_s is None else now - self._last_tick_s
             self._last_tick_s = now
-            if period is not None and period > STALL_WARN_S and self._streamed_last_tick:
-                self._last_stall = (now, period)
-                self._event("stall", f"this computer stalled: no setpoint for {period:.2f} s (autopilots leave "
+            # Measured from the last setpoint actually sent, not the last scheduled tick: an extra tick
+            # in between (a hold sent when inputs went stale) did reach the autopilot.
+            gap_s = now - self._last_setpoint_s
+            if gap_s > STALL_WARN_S and self._streamed_last_tick:
+                self._last_stall = (now, gap_s)
+                self._event("stall", f"this computer stalled: no setpoint for {gap_s:.2f} s (autopilots leave "
                             "OFFBOARD/GUIDED when setpoints stop: PX4 after COM_OF_LOSS_T, 1 s by default)",
-                            level="warning", gap_s=round(period, 3))
+                            level="warning", gap_s=round(gap_s, 3))
             self.tick_late_s.append(max(late, 0.0))
             if period is not None:
                 self.period_dev_s.append(abs(period - self.period_s))

@@ -62,7 +62,9 @@ def rigs(request, tmp_path_factory):
 def _flying(rigs, name: str) -> tuple[Rig, GroundStation]:
     rig = rigs[name]
     gcs = GroundStation(rig.gcs_port)
-    gcs.wait_heartbeat()
+    # The pool starts seven vehicles and companions at once: on a cold start (no bytecode yet) their
+    # imports alone can take longer than the default 20 s on 2 cores.
+    gcs.wait_heartbeat(60)
     rig.wait_flying(60)
     return rig, gcs
 
