@@ -655,6 +655,50 @@ def test_imitation_update_moves_the_actors_mean_and_its_convolutions_towards_the
     assert all(torch.equal(a, b) for a, b in zip(critic_q, agent.critic.q1.parameters()))  # no critic is trained
 
 
+def _whole_pixel_offset(out: torch.Tensor, x: torch.Tensor, pad: int) -> tuple[int, int] | None:
+    """The (dy, dx) crop of the replicate-padded ``x`` that ``out`` is, if any (one sample, [C, H, W])."""
+    h, w = x.shape[-2:]
+    padded = torch.nn.functional.pad(x.unsqueeze(0), (pad, pad, pad, pad), mode="replicate")[0]
+    for dy in range(2 * pad + 1):
+        for dx in range(2 * pad + 1):
+            if torch.allclose(out, padded[:, dy:dy + h, dx:dx + w], atol=1e-5):
+                return dy, dx
+    return None
+
+
+def test_random_shift_moves_each_depth_stack_by_whole_pixels_within_the_pad():
+    """DrQ's shift on the D435's non-square 32x20 grid: every sample is an exact crop of the replicate-padded
+    stack (no interpolation blur), at its own offset."""
+    from sitl.learn.agent import random_shift
+
+    torch.manual_seed(0)
+    x = torch.rand(16, 3, 20, 32)
+    out = random_shift(x, 2)
+    offsets = [_whole_pixel_offset(out[i], x[i], 2) for i in range(len(x))]
+    assert None not in offsets
+    assert len(set(offsets)) > 2  # each sample draws its own offset
+
+
+def test_distill_shift_px_trains_the_student_on_shifted_stacks():
+    """``distill_shift_px``: the imitation loss sees each stack shifted by up to that many pixels; 0 (the
+    default) sees it as rendered; negative values are refused."""
+    cam = CameraSpec(width=16, height=16)
+    batch = _teacher_buffer(some_unlabelled=False).sample(32, torch.device("cpu"), with_teacher=True)
+    seen = {}
+    for px in (0, 1):
+        torch.manual_seed(0)
+        agent = SacAeAgent(AgentConfig(method="distill", hidden_dim=32, distill_shift_px=px), cam, DEFAULT_ACTION_SPEC)
+        original = agent.update_imitation
+        agent.update_imitation = lambda pixels, *rest, _f=original, _px=px: (seen.__setitem__(_px, pixels), _f(pixels, *rest))[1]
+        agent.update(batch)
+        rendered, _ = agent._inputs(batch["depth"], batch["state"])
+        offsets = [_whole_pixel_offset(seen[px][i], rendered[i], px) for i in range(len(rendered))]
+        assert None not in offsets
+        assert len(set(offsets)) == 1 if px == 0 else len(set(offsets)) > 1
+    with pytest.raises(ValueError, match="distill_shift_px"):
+        AgentConfig(method="distill", distill_shift_px=-1)
+
+
 def test_distill_trainer_labels_every_world_and_hands_over_from_teacher_to_student(tmp_path):
     """DAgger: obstacle worlds are labelled too (the teacher sees the poles), and beta falls from 1 to
     0 over dagger_beta_updates, after which the UAVs fly the student's deterministic commands."""

@@ -68,6 +68,10 @@ class AgentConfig:
     decoder_update_freq: int = field(default=1, metadata={"help": "reference train.py"})
     n_step: int = field(default=1, metadata={"help": "n-step returns (1: the paper's one-step SAC target)"})
     drq_pad: int = field(default=2, metadata={"help": "drq: random shift of up to this many pixels"})
+    distill_shift_px: int = field(default=0, metadata={
+        "help": "distill only: shift each depth stack in the imitation loss by up to this many pixels (DrQ's "
+                "random shift as a regulariser for a student that fits its labels but does not generalise them; "
+                "0: off; not in the paper)"})
     privileged_critic: bool = field(default=False, metadata={
         "help": "asymmetric actor-critic (not in the paper): the critic also sees the true positions and velocities "
                 "of the 3 nearest UAVs, the nearest obstacle point and the altitude (sitl.learn.privileged); "
@@ -86,6 +90,7 @@ class AgentConfig:
         for name, low, high in (("hidden_dim", 1, 8192), ("latent_dim", 1, 1024), ("num_filters", 1, 256),
                                 ("critic_target_update_freq", 1, 10_000), ("actor_update_freq", 1, 10_000),
                                 ("decoder_update_freq", 1, 10_000), ("n_step", 1, 1000), ("drq_pad", 0, 16),
+                                ("distill_shift_px", 0, 16),
                                 ("actor_delay_updates", 0, 10_000_000)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
@@ -115,10 +120,12 @@ def random_shift(x: torch.Tensor, pad: int) -> torch.Tensor:
     """DrQ augmentation: replicate-pad by ``pad`` and crop back at a random offset per sample."""
     n, c, h, w = x.shape
     padded = F.pad(x, (pad, pad, pad, pad), mode="replicate")
-    eps = 1.0 / (h + 2 * pad)
-    arange = torch.linspace(-1.0 + eps, 1.0 - eps, h + 2 * pad, device=x.device)[:h]
+    # Pixel centres of the padded image in grid_sample's [-1, 1] coordinates, per axis: with one eps for
+    # both (DrQ's square images) a non-square grid such as the D435's 32x20 would be resampled, not shifted.
+    eps_y, eps_x = 1.0 / (h + 2 * pad), 1.0 / (w + 2 * pad)
+    arange = torch.linspace(-1.0 + eps_y, 1.0 - eps_y, h + 2 * pad, device=x.device)[:h]
     base_y = arange.unsqueeze(1).repeat(1, w)
-    arange_x = torch.linspace(-1.0 + eps, 1.0 - eps, w + 2 * pad, device=x.device)[:w]
+    arange_x = torch.linspace(-1.0 + eps_x, 1.0 - eps_x, w + 2 * pad, device=x.device)[:w]
     base_x = arange_x.unsqueeze(0).repeat(h, 1)
     grid = torch.stack([base_x, base_y], dim=-1).unsqueeze(0).repeat(n, 1, 1, 1)
     shift = torch.randint(0, 2 * pad + 1, size=(n, 1, 1, 2), device=x.device, dtype=x.dtype)
@@ -339,6 +346,8 @@ class SacAeAgent(nn.Module):
         pixels, state = self._inputs(batch["depth"], batch["state"])
         if cfg.method == "distill":
             self.updates += 1
+            if cfg.distill_shift_px:
+                pixels = random_shift(pixels, cfg.distill_shift_px)
             return self.update_imitation(pixels, state, batch["teacher_action"], batch["teacher_valid"])
         next_pixels, next_state = self._inputs(batch["next_depth"], batch["next_state"])
         if cfg.method == "drq":
