@@ -725,6 +725,30 @@ def test_distill_trainer_labels_every_world_and_hands_over_from_teacher_to_stude
     assert trainer.teacher.see_obstacles
 
 
+def test_distill_data_scale_collects_more_labelled_transitions_per_update_for_the_student_only(tmp_path):
+    """``distill_data_scale`` F: a distill run makes the same updates from F times the transitions, in a buffer
+    F times larger; other methods ignore it (a recipe's SAC stages keep their own ratio)."""
+    from sitl.learn.config import PRESETS, resolve_configs
+    from sitl.learn.trainer import data_scale, make_trainer
+
+    base = {**PRESETS["flown"]["train"], "preset": "flown", "method": "distill", "scenario": "random",
+            "num_worlds": 2, "total_updates": 24, "init_steps": 32, "batch_size": 16, "eval_every_updates": 0,
+            "final_eval_episodes": 0, "updates_per_env_step": 0.5, "replay_capacity": 5_000}
+    collected = {}
+    for scale in (1.0, 2.0):
+        cfg, agent_cfg = resolve_configs({**base, "distill_data_scale": scale}, {"hidden_dim": 32})
+        trainer = make_trainer(cfg, agent_cfg, tmp_path / f"x{scale:g}")
+        trainer.run()
+        assert trainer.agent.updates == 24 and trainer.buffer.capacity == round(5_000 * scale)
+        collected[scale] = trainer.counters["env_steps"]
+    # 24 updates at 0.5 per step need 48 environment steps after the random start; at F = 2, 96.
+    assert collected[2.0] - collected[1.0] == pytest.approx(48, abs=2)
+    cfg, _ = resolve_configs({**base, "method": "cnn", "distill_data_scale": 4.0}, {})
+    assert data_scale(cfg) == 1.0
+    with pytest.raises(ValueError, match="distill_data_scale"):
+        resolve_configs({**base, "distill_data_scale": 0.5}, {})
+
+
 def test_frozen_convolutions_stay_put_and_a_delayed_actor_waits_for_its_critic():
     """SAC on fixed features (``freeze_convs``, the cnn method only): the critic learns, the convolutions
     do not; with ``actor_delay_updates`` the actor and temperature stay put for that many updates."""

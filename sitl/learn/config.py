@@ -222,6 +222,10 @@ class TrainConfig:
                                              "with circle_teacher_right: how far that teacher turns its preferred "
                                              "velocity to the right, in degrees (0-90; 80 keeps scattered circles "
                                              "apart: docs/training.md 'A wider roundabout for scattered circles')")
+    distill_data_scale: float = _param(1.0, "distill stages only: this many times the labelled transitions per update "
+                                            "(updates_per_env_step divided by it) and a replay buffer this many times "
+                                            "larger, so it spans the same number of episodes (session 32: the student "
+                                            "is short of data; docs/training.md 'Twice the student's data')")
     teacher_camera_limited: bool = _param(False, "with a teacher (distill, teacher_bc_weight): the worlds other than "
                                           "circles are labelled by ORCA that knows only the UAVs in each UAV's camera "
                                           "view and still sees the obstacles (the camera limited ORCA reference, plus obstacles) "
@@ -318,6 +322,8 @@ class TrainConfig:
             raise ValueError("precollision_fraction > 0 needs precollision_steps > 0 (no transition would be marked)")
         if not 0.0 <= self.updates_per_env_step <= 10_000.0:
             raise ValueError(f"updates_per_env_step must be in [0, 10000], got {self.updates_per_env_step}")
+        if not 1.0 <= self.distill_data_scale <= 64.0:
+            raise ValueError(f"distill_data_scale must be in [1, 64], got {self.distill_data_scale}")
         if not -1_000.0 <= self.collision_reward <= 0.0:
             raise ValueError(f"collision_reward must be in [-1000, 0], got {self.collision_reward}")
         if not -1_000.0 <= self.uav_collision_extra_reward <= 0.0:

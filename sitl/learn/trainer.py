@@ -215,10 +215,16 @@ def make_env(cfg: TrainConfig) -> SwarmEnv:
     return SwarmEnv(make_sim_config(cfg, cfg.num_worlds), seed=cfg.seed)
 
 
+def data_scale(cfg: TrainConfig) -> float:
+    """How many times the labelled transitions per update (and the buffer) this run collects: ``distill_data_scale``
+    for the ``distill`` method, 1 for the others."""
+    return cfg.distill_data_scale if cfg.method == "distill" else 1.0
+
+
 def make_buffer(cfg: TrainConfig, env: SwarmEnv, privileged_dim: int = 0) -> FrameReplayBuffer:
     """The replay buffer for ``env``'s UAVs and camera (``privileged_dim``: an asymmetric critic's extra input)."""
     cam = env.config.camera
-    return FrameReplayBuffer(cfg.replay_capacity, env.num_agents, cam.frames, cam.height, cam.width,
+    return FrameReplayBuffer(round(cfg.replay_capacity * data_scale(cfg)), env.num_agents, cam.frames, cam.height, cam.width,
                              state_dim_for(env.config.memory), DEFAULT_ACTION_SPEC.dim, seed=cfg.seed,
                              privileged_dim=privileged_dim,
                              frame_ages=cam.stack_ages, precollision_steps=cfg.precollision_steps)
@@ -564,7 +570,7 @@ class Trainer:
             returns += reward
             k["env_steps"] += 1
             k["transitions"] += len(rows)
-            k["update_credit"] += cfg.updates_per_env_step
+            k["update_credit"] += cfg.updates_per_env_step / data_scale(cfg)
             window_steps += len(rows)
 
             done_worlds = env.world_done
