@@ -684,17 +684,24 @@ def test_distill_shift_px_trains_the_student_on_shifted_stacks():
     default) sees it as rendered; negative values are refused."""
     cam = CameraSpec(width=16, height=16)
     batch = _teacher_buffer(some_unlabelled=False).sample(32, torch.device("cpu"), with_teacher=True)
-    seen = {}
     for px in (0, 1):
         torch.manual_seed(0)
         agent = SacAeAgent(AgentConfig(method="distill", hidden_dim=32, distill_shift_px=px), cam, DEFAULT_ACTION_SPEC)
-        original = agent.update_imitation
-        agent.update_imitation = lambda pixels, *rest, _f=original, _px=px: (seen.__setitem__(_px, pixels), _f(pixels, *rest))[1]
+        seen = []
+        imitate = agent.update_imitation
+
+        def recording_imitation(pixels, *rest):  # the real update, with its input kept for the check
+            seen.append(pixels)
+            return imitate(pixels, *rest)
+
+        agent.update_imitation = recording_imitation
         agent.update(batch)
         rendered, _ = agent._inputs(batch["depth"], batch["state"])
-        offsets = [_whole_pixel_offset(seen[px][i], rendered[i], px) for i in range(len(rendered))]
-        assert None not in offsets
-        assert len(set(offsets)) == 1 if px == 0 else len(set(offsets)) > 1
+        offsets = {_whole_pixel_offset(seen[0][i], rendered[i], px) for i in range(len(rendered))}
+        if px == 0:
+            assert offsets == {(0, 0)}  # as rendered
+        else:
+            assert None not in offsets and len(offsets) > 1  # whole-pixel shifts, drawn per sample
     with pytest.raises(ValueError, match="distill_shift_px"):
         AgentConfig(method="distill", distill_shift_px=-1)
 
