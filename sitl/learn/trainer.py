@@ -541,6 +541,7 @@ class Trainer:
         next_eval = (k["updates"] // cfg.eval_every_updates + 1) * cfg.eval_every_updates if cfg.eval_every_updates else math.inf
         window_t, window_steps, window_updates = time.perf_counter(), 0, 0
         latest_losses: dict[str, float] = {}
+        credit_per_step = cfg.updates_per_env_step / data_scale(cfg)  # updates earned by one environment step
 
         while not self.finished():
             acting = env.acting.copy()
@@ -570,7 +571,7 @@ class Trainer:
             returns += reward
             k["env_steps"] += 1
             k["transitions"] += len(rows)
-            k["update_credit"] += cfg.updates_per_env_step / data_scale(cfg)
+            k["update_credit"] += credit_per_step
             window_steps += len(rows)
 
             done_worlds = env.world_done
