@@ -317,6 +317,22 @@ def test_autopilot_nice_lowers_only_the_autopilots_priority(tmp_path):
     assert plain._niced(["px4"]) == ["px4"]
 
 
+def test_px4_sih_boots_with_its_imus_noise_unless_a_param_says_otherwise(tmp_path):
+    """EKF2 is told SIH's IMU noise (with PX4's defaults its heading estimate drifted 15-23 deg, session 59);
+    a parameter given by the caller wins, and each instance keeps its own home."""
+    from sitl.realtime.autopilot_sitl import PX4_SIH_PARAMS
+
+    swarm = RealSwarm(PX4, tmp_path / "px4", np.array([[0.0, 0.0], [6.0, 0.0]]), tmp_path / "run",
+                      params={"EKF2_GYR_NOISE": 0.05, "COM_OF_LOSS_T": 0.5})
+    env = swarm.px4_env(1)
+    assert PX4_SIH_PARAMS == {"EKF2_GYR_NOISE": 0.1, "EKF2_ACC_NOISE": 1.0}
+    assert env["PX4_PARAM_EKF2_GYR_NOISE"] == "0.05" and env["PX4_PARAM_EKF2_ACC_NOISE"] == "1"
+    assert env["PX4_PARAM_COM_OF_LOSS_T"] == "0.5" and env["PX4_SIMULATOR"] == "sihsim"
+    assert float(env["PX4_HOME_LAT"]) > float(swarm.px4_env(0)["PX4_HOME_LAT"])  # 6 m north of instance 0
+    plain = RealSwarm(PX4, tmp_path / "px4", np.zeros((1, 2)), tmp_path / "run2").px4_env(0)
+    assert plain["PX4_PARAM_EKF2_GYR_NOISE"] == "0.1"
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--autopilot-nice", "25"], "--autopilot-nice"), (["--face-goal", "0"], "--face-goal must be seconds")])
 def test_circle_options_refuse_bad_values_in_one_line(argv, message, tmp_path):

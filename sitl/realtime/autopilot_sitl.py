@@ -297,15 +297,19 @@ class RealSwarm:
                         "--defaults", ",".join(str(d) for d in defaults)]
                 self._start(f"autopilot_{i}", self._niced(argv), cwd=folder)
             else:
-                env = {"PX4_SYS_AUTOSTART": PX4_SIH_AUTOSTART, "PX4_SIM_MODEL": "sihsim_quadx",
-                       "PX4_SIMULATOR": "sihsim", "PX4_HOME_LAT": f"{lat:.8f}", "PX4_HOME_LON": f"{lon:.8f}",
-                       "PX4_HOME_ALT": f"{alt:.1f}"}
-                # rcS sets PX4_PARAM_<NAME>=<value> as parameters at boot, before the modules start
-                params = {**PX4_SIH_PARAMS, **self.params}
-                env.update({f"PX4_PARAM_{name}": f"{value:g}" for name, value in params.items()})
                 etc = self.binary.resolve().parent.parent / "etc"
                 argv = [str(self.binary), "-d", "-i", str(i), "-w", str(folder), str(etc)]
-                self._start(f"autopilot_{i}", self._niced(argv), env=env)
+                self._start(f"autopilot_{i}", self._niced(argv), env=self.px4_env(i))
+
+    def px4_env(self, i: int) -> dict[str, str]:
+        """The environment PX4 SIH instance ``i`` boots with: SIH, its home, and its parameters."""
+        lat, lon, alt = self.home_of(i)
+        env = {"PX4_SYS_AUTOSTART": PX4_SIH_AUTOSTART, "PX4_SIM_MODEL": "sihsim_quadx", "PX4_SIMULATOR": "sihsim",
+               "PX4_HOME_LAT": f"{lat:.8f}", "PX4_HOME_LON": f"{lon:.8f}", "PX4_HOME_ALT": f"{alt:.1f}"}
+        # rcS sets PX4_PARAM_<NAME>=<value> as parameters at boot, before the modules start
+        params = {**PX4_SIH_PARAMS, **self.params}
+        env.update({f"PX4_PARAM_{name}": f"{value:g}" for name, value in params.items()})
+        return env
 
     def _niced(self, argv: list[str]) -> list[str]:
         return ["nice", "-n", str(self.autopilot_nice), *argv] if self.autopilot_nice else argv
