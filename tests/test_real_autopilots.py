@@ -249,6 +249,19 @@ def test_circle_layout_sends_every_vehicle_to_its_antipode():
     assert closest == pytest.approx(2 * 12.0 * np.sin(np.pi / 8))  # neighbours' chord
 
 
+def test_late_policy_answers_are_counted_per_companion_from_the_goals_on(tmp_path):
+    """A starved run shows in the summary: each companion's discarded late answers after the goals went out."""
+    from sitl.realtime.autopilot_sitl import late_policy_answers
+
+    def record(t, event):
+        return json.dumps({"t": t, "kind": "event", "event": event, "message": "..."}) + "\n"
+
+    (tmp_path / "companion_0.jsonl").write_text(record(99.0, "policy_late") + record(100.5, "policy_late")
+                                                + record(101.0, "stall") + record(102.0, "policy_late"))
+    (tmp_path / "companion_1.jsonl").write_text(record(101.0, "phase"))
+    assert late_policy_answers(tmp_path, 2, since_unix_s=100.0) == [2, 0]
+
+
 def test_the_circles_closest_pair_counts_only_what_the_companions_flew():
     """Two vehicles that meet only after PX4's failsafe took both (AUTO.RTL) did not meet under the policy: the
     summary's closest pair is the companions' (session 55 reported such a 0.41 m pair as the policy's)."""

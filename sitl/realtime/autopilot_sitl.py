@@ -586,6 +586,7 @@ def fly_circle(kind: str, binary: Path, n: int, out: Path, radius_m: float = 12.
                 "goal_sent_s": np.round(first_sent_s, 4).tolist()}
     summary["response_fit"] = _fit_or_why(out)
     summary["companion_stalls"] = companion_stalls(out, n, t0)
+    summary["late_policy_answers"] = late_policy_answers(out, n, t0)
     summary["autopilot_failsafes"] = failsafes = _failsafes_or_why(out, t0)
     # A vehicle the autopilot took from its companion before it arrived did not fly the policy: the run does not
     # measure the policy for it (on a 2-core machine, mostly PX4's offboard-loss failsafe after a stall).
@@ -615,6 +616,13 @@ def companion_stalls(out: Path, n: int, since_unix_s: float) -> list[dict]:
             if r.get("event") == "stall":
                 stalls.append({"vehicle": i, "t_after_s": round(r["t"] - since_unix_s, 2), "gap_s": r.get("gap_s")})
     return sorted(stalls, key=lambda r: r["t_after_s"])
+
+
+def late_policy_answers(out: Path, n: int, since_unix_s: float) -> list[int]:
+    """Per companion, the policy answers it discarded as late (``policy_late``: each a tick it held instead of flying)
+    from ``since_unix_s`` on. On a starved machine these run into the hundreds (docs/real_autopilots.md)."""
+    return [sum(1 for r in JsonLinesTail(out / f"companion_{i}.jsonl").read()
+                if r.get("event") == "policy_late" and r["t"] >= since_unix_s) for i in range(n)]
 
 
 def _failsafes_or_why(out: Path, since_unix_s: float) -> list[dict] | str:
