@@ -61,9 +61,9 @@ PX4_SIH_AUTOSTART = "10040"  # sihsim_quadx
 #: EKF2's IMU noise set to what PX4 SIH's simulated IMU gives in flight. SIH adds 0.14 / 0.07 / 0.03 rad/s of gyro and
 #: 0.5 / 1.7 / 1.4 m/s^2 of accelerometer noise once the rotors turn (sih.cpp); its 250 Hz sensor_combined reads
 #: 0.11 / 0.06 / 0.02 rad/s and 0.4 / 1.2 / 1.0 m/s^2. EKF2's defaults (0.015 rad/s, 0.35 m/s^2) are a real IMU's:
-#: with them this build's heading estimate left the truth by 18-23 deg and Hold circled its point
-#: (docs/real_autopilots.md, "PX4 SIH's heading estimate"). These describe the simulator, not a vehicle; a --param
-#: of the same name wins.
+#: with them this build's heading estimate left the truth by 15-23 deg and Hold circled its point
+#: (docs/real_autopilots.md, "The cause: EKF2 did not know SIH's IMU noise"). These describe the simulator, not a
+#: vehicle; a --param of the same name wins.
 PX4_SIH_PARAMS = {"EKF2_GYR_NOISE": 0.1, "EKF2_ACC_NOISE": 1.0}
 MAV_COMP_ID_ONBOARD_COMPUTER = 191  # the companion's component id: goals go there
 POSITION_MASK = 0b110111111000  # SET_POSITION_TARGET_LOCAL_NED: position only
