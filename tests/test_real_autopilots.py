@@ -251,7 +251,7 @@ def test_circle_layout_sends_every_vehicle_to_its_antipode():
 
 def test_late_policy_answers_are_counted_per_companion_from_the_goals_on(tmp_path):
     """A starved run shows in the summary: each companion's discarded late answers after the goals went out."""
-    from sitl.realtime.autopilot_sitl import late_policy_answers
+    from sitl.realtime.autopilot_sitl import companion_logs, late_policy_answers
 
     def record(t, event):
         return json.dumps({"t": t, "kind": "event", "event": event, "message": "..."}) + "\n"
@@ -259,7 +259,7 @@ def test_late_policy_answers_are_counted_per_companion_from_the_goals_on(tmp_pat
     (tmp_path / "companion_0.jsonl").write_text(record(99.0, "policy_late") + record(100.5, "policy_late")
                                                 + record(101.0, "stall") + record(102.0, "policy_late"))
     (tmp_path / "companion_1.jsonl").write_text(record(101.0, "phase"))
-    assert late_policy_answers(tmp_path, 2, since_unix_s=100.0) == [2, 0]
+    assert late_policy_answers(companion_logs(tmp_path, 2), since_unix_s=100.0) == [2, 0]
 
 
 def test_the_circles_closest_pair_counts_only_what_the_companions_flew():

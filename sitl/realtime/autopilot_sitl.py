@@ -585,8 +585,9 @@ def fly_circle(kind: str, binary: Path, n: int, out: Path, radius_m: float = 12.
                 "companion_scheduling": f"SCHED_FIFO {COMPANION_FIFO_PRIORITY}" if companion_realtime else "default",
                 "goal_sent_s": np.round(first_sent_s, 4).tolist()}
     summary["response_fit"] = _fit_or_why(out)
-    summary["companion_stalls"] = companion_stalls(out, n, t0)
-    summary["late_policy_answers"] = late_policy_answers(out, n, t0)
+    logs = companion_logs(out, n)
+    summary["companion_stalls"] = companion_stalls(logs, t0)
+    summary["late_policy_answers"] = late_policy_answers(logs, t0)
     summary["autopilot_failsafes"] = failsafes = _failsafes_or_why(out, t0)
     # A vehicle the autopilot took from its companion before it arrived did not fly the policy: the run does not
     # measure the policy for it (on a 2-core machine, mostly PX4's offboard-loss failsafe after a stall).
@@ -607,22 +608,24 @@ def _fit_or_why(out: Path) -> dict | str:
         return f"not fitted: {err}"
 
 
-def companion_stalls(out: Path, n: int, since_unix_s: float) -> list[dict]:
+def companion_logs(out: Path, n: int) -> list[list[dict]]:
+    """Every companion's log records (``companion_I.jsonl`` in run folder ``out``), read once for the summaries."""
+    return [JsonLinesTail(out / f"companion_{i}.jsonl").read() for i in range(n)]
+
+
+def companion_stalls(logs: list[list[dict]], since_unix_s: float) -> list[dict]:
     """Every companion's logged stalls (``stall``: its loop went more than 0.5 s without a setpoint), with the time
     after ``since_unix_s``: a stall near a close encounter means the policy was not flying then."""
-    stalls = []
-    for i in range(n):
-        for r in JsonLinesTail(out / f"companion_{i}.jsonl").read():
-            if r.get("event") == "stall":
-                stalls.append({"vehicle": i, "t_after_s": round(r["t"] - since_unix_s, 2), "gap_s": r.get("gap_s")})
+    stalls = [{"vehicle": i, "t_after_s": round(r["t"] - since_unix_s, 2), "gap_s": r.get("gap_s")}
+              for i, records in enumerate(logs) for r in records if r.get("event") == "stall"]
     return sorted(stalls, key=lambda r: r["t_after_s"])
 
 
-def late_policy_answers(out: Path, n: int, since_unix_s: float) -> list[int]:
+def late_policy_answers(logs: list[list[dict]], since_unix_s: float) -> list[int]:
     """Per companion, the policy answers it discarded as late (``policy_late``: each a tick it held instead of flying)
     from ``since_unix_s`` on. On a starved machine these run into the hundreds (docs/real_autopilots.md)."""
-    return [sum(1 for r in JsonLinesTail(out / f"companion_{i}.jsonl").read()
-                if r.get("event") == "policy_late" and r["t"] >= since_unix_s) for i in range(n)]
+    return [sum(1 for r in records if r.get("event") == "policy_late" and r["t"] >= since_unix_s)
+            for records in logs]
 
 
 def _failsafes_or_why(out: Path, since_unix_s: float) -> list[dict] | str:

@@ -91,7 +91,9 @@ _MAY_BE_ZERO = ("drag_horizontal_per_s", "integral_horizontal_per_s2")
 #: ``px4-sih``: PX4 SIH's default quadrotor (sihsim_quadx) as fitted in five circles of 8 flown by
 #: ``sitl.real_autopilots`` on an idle machine (``python -m sitl.real_autopilots fit``; docs/real_autopilots.md
 #: "Fitting each vehicle's response"): 38-39 of the 40 vehicle fits lie inside each range (all of them: lag
-#: 0.7-1.05 s, drag 0.15-0.8 /s, integral 0-0.4 /s^2, vertical lag 0.05-0.3 s).
+#: 0.7-1.05 s, drag 0.15-0.8 /s, integral 0-0.4 /s^2, vertical lag 0.05-0.3 s). Flown again in session 59 with PX4's
+#: heading estimate corrected (``PX4_SIH_PARAMS``), the 128 fits of 16 runs whose companions kept up spanned lag
+#: 0.7-1.05 s, drag 0.35-0.85 /s, integral 0.1-0.3 /s^2, vertical lag 0.05-0.35 s: the same ranges.
 RESPONSE_PRESETS: dict[str, dict[str, tuple[float, float]]] = {
     "px4-sih": {"tau_horizontal_s": (0.7, 1.0), "drag_horizontal_per_s": (0.3, 0.8),
                 "integral_horizontal_per_s2": (0.1, 0.3), "tau_vertical_s": (0.1, 0.3)},
