@@ -262,6 +262,33 @@ def test_late_policy_answers_are_counted_per_companion_from_the_goals_on(tmp_pat
     assert late_policy_answers(companion_logs(tmp_path, 2), since_unix_s=100.0) == [2, 0]
 
 
+def test_held_ticks_in_flight_tell_a_starved_run_from_a_fed_one(tmp_path):
+    """The share of ticks each companion held while it flew to its goal, and why: above 5 % on average the run did
+    not fly the policy (session 59's starved PX4 circles held 15-46 %, most fed ones 0-3 %)."""
+    from sitl.realtime.autopilot_sitl import (STARVED_HELD_SHARE, companion_logs, held_reasons, held_shares,
+                                              mean_held_share)
+
+    def step(t, hold, phase="flying_to_goal", goal=(20.0, 0.0, -8.0)):
+        return json.dumps({"t": t, "kind": "step", "phase": phase, "hold": hold,
+                           "goal_ned": None if goal is None else list(goal)}) + "\n"
+
+    late = "policy inference late (130 ms > 100 ms)"
+    (tmp_path / "companion_0.jsonl").write_text(
+        step(99.0, late)                                     # before the goals: not counted
+        + step(100.1, "no goal", goal=None)                  # no goal yet: not counted
+        + step(100.2, late) + step(100.3, "depth stale (900 ms old: camera stopped?)") + step(100.4, None)
+        + step(100.5, None) + step(100.6, late, phase="holding_at_goal"))   # arrived: not counted
+    (tmp_path / "companion_1.jsonl").write_text("".join(step(100.0 + 0.1 * k, None) for k in range(1, 5)))
+    (tmp_path / "companion_2.jsonl").write_text(step(100.1, None, phase="taking_off"))
+    logs = companion_logs(tmp_path, 3)
+    shares = held_shares(logs, since_unix_s=100.0)
+    assert shares == [0.5, 0.0, None]
+    assert held_reasons(logs, since_unix_s=100.0) == {"policy inference late": 1, "depth stale": 1}
+    assert mean_held_share(shares) == 0.25 > STARVED_HELD_SHARE  # a starved run
+    assert mean_held_share([0.03, 0.0, 0.02]) < STARVED_HELD_SHARE < mean_held_share([0.15, 0.12, 0.2])
+    assert mean_held_share([None, None]) is None
+
+
 def test_the_circles_closest_pair_counts_only_what_the_companions_flew():
     """Two vehicles that meet only after PX4's failsafe took both (AUTO.RTL) did not meet under the policy: the
     summary's closest pair is the companions' (session 55 reported such a 0.41 m pair as the policy's)."""
