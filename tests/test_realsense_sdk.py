@@ -18,7 +18,9 @@ import time
 import numpy as np
 import pytest
 
-rs = pytest.importorskip("pyrealsense2", reason="pyrealsense2 is not importable here (pip install 'swarmnav[realsense]')")
+# exc_type=ImportError: the wheel installs without libusb-1.0 and then fails to load its library; skip then too.
+rs = pytest.importorskip("pyrealsense2", reason="pyrealsense2 is not importable here (pip install 'swarmnav[realsense]'; "
+                         "it needs libusb-1.0)", exc_type=ImportError)
 
 from companion.depth_sources import (  # noqa: E402
     DepthFault,
