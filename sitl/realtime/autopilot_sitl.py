@@ -43,6 +43,7 @@ import numpy as np
 
 from companion.face_goal import DEFAULT_FACE_GOAL_S, add_face_goal_argument
 from companion.flight_modes import (ARDUCOPTER_MODE_BY_NAME, PX4_MODE_BY_NAME)
+from companion.runtime import FlightPhase
 from companion.spec import CAMERA_PRESETS, DEFAULT_TASK_SPEC
 from sitl.realtime.depth_bridge import ned_offset_m, shift_global
 from sitl.realtime.mavlink_swarm import JsonLinesTail, ProcessGroup, _die_with_parent, companion_command
@@ -546,7 +547,7 @@ def fly_circle(kind: str, binary: Path, n: int, out: Path, radius_m: float = 12.
         for i in range(n):
             swarm.start_companion(i, *(() if face_goal_s is None else ("--face-goal", f"{face_goal_s:g}")),
                                   takeoff_m=altitude_m)
-        swarm.wait_phase(list(range(n)), "flying_to_goal", ready_timeout_s)
+        swarm.wait_phase(list(range(n)), FlightPhase.FLYING_TO_GOAL.value, ready_timeout_s)
         ready_s = time.monotonic() - started
         swarm.connect_ground_station()
         status(f"{kind}: all {n} airborne after {ready_s:.0f} s; sending the goals")
@@ -646,8 +647,9 @@ STARVED_HELD_SHARE = 0.05
 def _held_in_flight(logs: list[list[dict]], since_unix_s: float):
     """Per companion, the ``hold`` field of each control tick from ``since_unix_s`` on in which it flew to a goal it
     had (phase ``flying_to_goal``, goal known): None where it sent the policy's command."""
+    flying = FlightPhase.FLYING_TO_GOAL.value
     return [[r.get("hold") for r in records if r.get("kind") == "step" and r["t"] >= since_unix_s
-             and r.get("phase") == "flying_to_goal" and r.get("goal_ned") is not None] for records in logs]
+             and r.get("phase") == flying and r.get("goal_ned") is not None] for records in logs]
 
 
 def held_shares(logs: list[list[dict]], since_unix_s: float) -> list[float | None]:
@@ -746,7 +748,7 @@ def fly_and_stop(kind: str, binary: Path, out: Path, sig: int, distance_m: float
         swarm.start_world()
         swarm.wait_tracking(ready_timeout_s)
         swarm.start_companion(0, "--goal", ",".join(f"{c:g}" for c in goal), takeoff_m=altitude_m)
-        swarm.wait_phase([0], "flying_to_goal", ready_timeout_s)
+        swarm.wait_phase([0], FlightPhase.FLYING_TO_GOAL.value, ready_timeout_s)
         deadline = time.monotonic() + 60.0
         while True:
             swarm.check_alive()
