@@ -23,6 +23,10 @@ the companion run the same code on the same input):
   obstacle is in the way again, and the vehicle dithers in front of it. The turn state is per vehicle
   (:meth:`SpeedGovernor.apply`'s ``turning`` in and out; 0 at the start of a flight).
 
+* **Climb cap** (``max_climb_m_s`` finite; off by default). The climb and descent rate is clipped to
+  ``+-max_climb_m_s`` whatever the forward speed. Most of the dense scenes' unseen collisions close
+  vertically (docs/results.md "What a forward D435 allows"); a slower climb gives a neighbour above or
+  below more time to move off before contact.
 * **Climb in view** (``view_climb_margin_deg`` finite; off by default). A forward camera sees nothing
   above or below its vertical field of view, and a UAV climbing or descending steeply there meets
   neighbours it never had in its image (most of the dense scenes' collisions, docs/results.md "Climbing
@@ -30,13 +34,14 @@ the companion run the same code on the same input):
   view, less the margin: ``|climb| <= forward * tan(vfov / 2 -+ mount pitch - margin)``, and at
   least ``blind_climb_m_s`` (so a UAV just below its goal still gets there).
 
-Otherwise it only lowers the forward speed and sets the yaw rate; climb is the policy's. "No data" pixels
+Otherwise it only lowers the forward speed and sets the yaw rate; climb is the policy's, within those two limits. "No data" pixels
 read as the camera's range (the policy's convention), i.e. free. It assumes the obstacle stands
 still (two vehicles closing head-on need twice the room). Measured in docs/results.md ("The speed
 governor"): it lifts random and obstacle scenes and costs dense converging traffic (a circle of 14
-UAVs), so it is opt-in (``companion --governor``). :data:`GOVERNOR_PRESETS` names three settings: the
+UAVs), so it is opt-in (``companion --governor``). :data:`GOVERNOR_PRESETS` names four settings: the
 ``default`` (stop and turn), ``swarm`` (0.6 m stop, no turn), which keeps dense circles for policies that
-turn by themselves, and ``swarm-view`` (``swarm`` plus climb in view).
+turn by themselves, ``swarm-view`` (``swarm`` plus climb in view) and ``swarm-slow-climb`` (``swarm`` plus
+the climb cap at 0.25 m/s).
 """
 
 from __future__ import annotations
@@ -50,10 +55,10 @@ from companion.spec import CameraSpec
 
 
 #: The settings that may be infinite ("never"; null in JSON, policy.json's ``governor``).
-MAY_BE_INFINITE = ("release_margin_m", "view_climb_margin_deg")
+MAY_BE_INFINITE = ("release_margin_m", "view_climb_margin_deg", "max_climb_m_s")
 #: Settings added after policy files already recorded a governor: a file that does not name them was
 #: trained without them, i.e. with their defaults (which change nothing).
-ADDED_SETTINGS = ("view_climb_margin_deg", "blind_climb_m_s")
+ADDED_SETTINGS = ("view_climb_margin_deg", "blind_climb_m_s", "max_climb_m_s")
 
 
 @dataclass(frozen=True)
@@ -72,6 +77,7 @@ class GovernorSpec:
     release_margin_m: float = 1.0  # sticky turn: held until the corridor is clear to stop + this (inf: not sticky)
     view_climb_margin_deg: float = math.inf  # climb in view: path kept this far inside the vertical view (inf: off)
     blind_climb_m_s: float = 0.1  # climb in view: climb or descent always allowed, however slow the forward speed
+    max_climb_m_s: float = math.inf  # climb cap: |climb| and |descent| at most this (m/s; inf: off)
 
     def __post_init__(self) -> None:
         for name, value in asdict(self).items():
@@ -93,6 +99,8 @@ class GovernorSpec:
         turn = "turn to the freer side when stopped" if self.turn_when_capped_below > 0 else "never turn"
         climb = (f", climb only within the camera's vertical view less {self.view_climb_margin_deg:g} deg"
                  if math.isfinite(self.view_climb_margin_deg) else "")
+        if math.isfinite(self.max_climb_m_s):
+            climb += f", climb and descend at most {self.max_climb_m_s:g} m/s"
         return f"stop {self.stop_distance_m:g} m short in a +-{self.corridor_half_width_m:g} m corridor, {turn}{climb}"
 
 
@@ -102,11 +110,13 @@ class GovernorSpec:
 #: turns: the circle-teacher policies turn by themselves, and the default's turn and longer stop break their dense
 #: converging traffic (circles of 12-14 UAVs), where a UAV stopped or turned at the centre is met by neighbours it
 #: cannot see. ``swarm-view`` is ``swarm`` that also climbs only within the camera's view (docs/results.md "Climbing
-#: only where the camera looks": it removes blind vertical flight but does not raise success).
+#: only where the camera looks": it removes blind vertical flight but does not raise success). ``swarm-slow-climb`` is
+#: ``swarm`` with climb and descent capped at 0.25 m/s (docs/results.md "A slower climb", session 63).
 GOVERNOR_PRESETS: dict[str, GovernorSpec] = {
     "default": GovernorSpec(),
     "swarm": GovernorSpec(stop_distance_m=0.6, turn_when_capped_below=0.0),
     "swarm-view": GovernorSpec(stop_distance_m=0.6, turn_when_capped_below=0.0, view_climb_margin_deg=5.0),
+    "swarm-slow-climb": GovernorSpec(stop_distance_m=0.6, turn_when_capped_below=0.0, max_climb_m_s=0.25),
 }
 DEFAULT_GOVERNOR = "default"
 
@@ -198,6 +208,8 @@ class SpeedGovernor:
             ahead = np.maximum(out[:, 0], 0.0)
             out[:, 1] = np.clip(out[:, 1], -np.maximum(ahead * self.climb_per_forward, s.blind_climb_m_s),
                                 np.maximum(ahead * self.descent_per_forward, s.blind_climb_m_s))
+        if math.isfinite(s.max_climb_m_s):
+            out[:, 1] = np.clip(out[:, 1], -s.max_climb_m_s, s.max_climb_m_s)
         if not s.sticky:
             turning[:] = 0.0  # each step decides afresh
         return out, capped, nearest, turning

@@ -113,6 +113,23 @@ def test_climb_in_view_keeps_the_flight_path_inside_the_vertical_view():
     assert GovernorSpec().to_dict()["view_climb_margin_deg"] is None
 
 
+def test_the_climb_cap_clips_climb_and_descent_and_nothing_else():
+    """``max_climb_m_s``: |down velocity| <= the cap whatever the forward speed; off (inf) unless asked."""
+    from companion.governor import GOVERNOR_PRESETS
+
+    assert math.isinf(GovernorSpec().max_climb_m_s)
+    spec = GOVERNOR_PRESETS["swarm-slow-climb"]
+    assert spec == dataclasses.replace(GOVERNOR_PRESETS["swarm"], max_climb_m_s=0.25)
+    assert spec.describe().endswith("climb and descend at most 0.25 m/s")
+    commands = np.array([[2.0, -0.5, 0.1], [0.0, 0.5, -0.2], [1.0, 0.1, 0.0], [0.5, -0.25, 0.0]], dtype=np.float32)
+    out, _, _, _ = SpeedGovernor(CAMERA, spec).apply(_frames(k=4), commands)
+    assert out[:, 1].tolist() == pytest.approx([-0.25, 0.25, 0.1, -0.25])
+    np.testing.assert_allclose(out[:, [0, 2]], commands[:, [0, 2]])  # forward and yaw untouched
+    plain, _, _, _ = SpeedGovernor(CAMERA, GOVERNOR_PRESETS["swarm"]).apply(_frames(k=4), commands)
+    assert plain[:, 1].tolist() == pytest.approx(commands[:, 1].tolist())
+    assert GovernorSpec().to_dict()["max_climb_m_s"] is None  # JSON has no inf: null is "off"
+
+
 @pytest.mark.parametrize("field, value", [("stop_distance_m", -1.0), ("brake_acc_m_s2", 0.0),
                                           ("corridor_half_width_m", math.nan)])
 def test_bad_settings_are_refused(field, value):
