@@ -34,8 +34,8 @@ the companion run the same code on the same input):
   view, less the margin: ``|climb| <= forward * tan(vfov / 2 -+ mount pitch - margin)``, and at
   least ``blind_climb_m_s`` (so a UAV just below its goal still gets there).
 
-Otherwise it only lowers the forward speed and sets the yaw rate; climb is the policy's, within those two limits. "No data" pixels
-read as the camera's range (the policy's convention), i.e. free. It assumes the obstacle stands
+Otherwise it only lowers the forward speed and sets the yaw rate; climb is the policy's, within those two
+limits. "No data" pixels read as the camera's range (the policy's convention), i.e. free. It assumes the obstacle stands
 still (two vehicles closing head-on need twice the room). Measured in docs/results.md ("The speed
 governor"): it lifts random and obstacle scenes and costs dense converging traffic (a circle of 14
 UAVs), so it is opt-in (``companion --governor``). :data:`GOVERNOR_PRESETS` names four settings: the
