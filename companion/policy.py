@@ -173,7 +173,8 @@ class LoadedPolicy:
     format_version: int = FORMAT_VERSION
     #: How an older file was read (empty for a current one): the companion prints these.
     notes: tuple[str, ...] = ()
-    #: The speed governor the policy was trained with (policy.json's optional ``governor``): it flies with it.
+    #: The speed governor the policy flies with (policy.json's optional ``governor``: the one it trained with, or
+    #: its run's ``--flight-governor-setting``).
     governor: GovernorSpec | None = None
     #: The remembered-depth input appended to its state (policy.json's optional ``memory``), if any.
     memory: MemorySpec | None = None

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from companion.governor import GovernorSpec, SpeedGovernor
+from companion.governor import GOVERNOR_PRESETS, GovernorSpec, SpeedGovernor
 from companion.spec import CAMERA_PRESETS
 from sitl.eval.evaluate import EvalSettings, evaluate_method
 from sitl.eval.methods import resolve_method
@@ -90,7 +90,6 @@ def test_a_stopped_uav_turns_towards_the_freer_side_unless_the_policy_turns():
 
 def test_climb_in_view_keeps_the_flight_path_inside_the_vertical_view():
     """``view_climb_margin_deg``: |climb| <= forward * tan(vfov/2 -+ pitch - margin), at least ``blind_climb_m_s``."""
-    from companion.governor import GOVERNOR_PRESETS
 
     assert math.isinf(GovernorSpec().view_climb_margin_deg)  # off unless asked
     spec = GOVERNOR_PRESETS["swarm-view"]
@@ -115,7 +114,6 @@ def test_climb_in_view_keeps_the_flight_path_inside_the_vertical_view():
 
 def test_the_climb_cap_clips_climb_and_descent_and_nothing_else():
     """``max_climb_m_s``: |down velocity| <= the cap whatever the forward speed; off (inf) unless asked."""
-    from companion.governor import GOVERNOR_PRESETS
 
     assert math.isinf(GovernorSpec().max_climb_m_s)
     spec = GOVERNOR_PRESETS["swarm-slow-climb"]
@@ -185,7 +183,7 @@ def test_evaluation_flies_a_governed_controller_under_its_own_label():
 def test_the_named_settings_reach_the_evaluation_and_the_companion_command_line():
     """``--governor`` alone is the default (stop and turn); ``--governor swarm`` stops 0.6 m short and never turns."""
     from companion.cli import build_parser as companion_parser
-    from companion.governor import DEFAULT_GOVERNOR, GOVERNOR_PRESETS
+    from companion.governor import DEFAULT_GOVERNOR
     from sitl.eval.cli import parse_args
 
     swarm = GOVERNOR_PRESETS["swarm"]
@@ -200,13 +198,23 @@ def test_the_named_settings_reach_the_evaluation_and_the_companion_command_line(
     assert companion_parser().parse_args([*base, "--governor"]).governor == DEFAULT_GOVERNOR
     assert companion_parser().parse_args([*base, "--governor", "swarm"]).governor == "swarm"
     from sitl.learn.config import resolve_configs
-    from sitl.learn.trainer import train_governor
+    from sitl.learn.trainer import flight_governor, train_governor
 
     assert train_governor(resolve_configs({"governor": True, "governor_setting": "swarm"}, {})[0]) == swarm
     assert train_governor(resolve_configs({"governor": True}, {})[0]) == GovernorSpec()
     assert train_governor(resolve_configs({"governor_setting": "swarm"}, {})[0]) is None
     with pytest.raises(ValueError, match="unknown governor_setting"):
         resolve_configs({"governor_setting": "fast"}, {})
+    # The governor the policy flies with (validation, the final choice, policy.json): the training one unless named.
+    flown = resolve_configs({"governor": True, "governor_setting": "swarm",
+                             "flight_governor_setting": "swarm-slow-climb"}, {})[0]
+    assert train_governor(flown) == swarm and flight_governor(flown) == GOVERNOR_PRESETS["swarm-slow-climb"]
+    assert flight_governor(resolve_configs({"governor": True, "governor_setting": "swarm"}, {})[0]) == swarm
+    assert flight_governor(resolve_configs({}, {})[0]) is None
+    with pytest.raises(ValueError, match="unknown flight_governor_setting"):
+        resolve_configs({"governor": True, "flight_governor_setting": "fast"}, {})
+    with pytest.raises(ValueError, match="needs governor"):
+        resolve_configs({"flight_governor_setting": "swarm"}, {})
     # A governor that stops but never turns leaves the policy's yaw alone: nose to nose, nobody passes.
     governor = SpeedGovernor(CAMERA, swarm)
     frame = np.full((1, CAMERA.height, CAMERA.width), 0.8, dtype=np.float32)  # a wall 0.8 m ahead
@@ -288,7 +296,8 @@ def test_a_policy_trained_with_the_governor_carries_it_and_flies_with_it(tmp_pat
 
 def test_training_with_the_governor_flies_governed_commands_and_exports_the_governor(tmp_path):
     """``sitl.train --governor``: the UAVs fly the governed commands, the replay keeps the policy's own
-    (the governor is part of the environment), and the exported file carries the governor."""
+    (the governor is part of the environment), and the exported file carries the governor it flies with
+    (``--flight-governor-setting``: here the climb-capped one, while the rollouts keep the uncapped default)."""
     from companion.policy import load_policy
     from sitl.learn.config import PRESETS, resolve_configs
     from sitl.learn.trainer import make_trainer
@@ -296,7 +305,8 @@ def test_training_with_the_governor_flies_governed_commands_and_exports_the_gove
     cfg, agent_cfg = resolve_configs(
         {**PRESETS["flown"]["train"], "preset": "flown", "governor": True, "scenario": "mixed",
          "circle_fraction": 0.0, "obstacle_fraction": 1.0, "num_worlds": 2, "total_updates": 2, "init_steps": 600,
-         "batch_size": 16, "eval_every_updates": 0, "final_eval_episodes": 0},
+         "batch_size": 16, "eval_every_updates": 0, "final_eval_episodes": 0,
+         "flight_governor_setting": "swarm-slow-climb"},
         {"hidden_dim": 32})
     trainer = make_trainer(cfg, agent_cfg, tmp_path)
     env, flown = trainer.env, []
@@ -314,8 +324,10 @@ def test_training_with_the_governor_flies_governed_commands_and_exports_the_gove
     assert np.all(flew[:, 0] <= stored[:, 0] + 1e-5)  # the governor only ever lowers the forward speed
     assert np.mean(flew[:, 0] < stored[:, 0] - 1e-3) > 0.01  # ... and did, among obstacles and other UAVs
     assert np.any(np.abs(flew[:, 2] - stored[:, 2]) > 1e-3)  # ... and turned some away
-    np.testing.assert_array_equal(flew[:, 1], stored[:, 1])  # climb is never changed
-    assert load_policy(tmp_path / "policy.pt").governor == GovernorSpec()
+    # climb is never changed: the rollouts fly the training governor, not the flight one's 0.25 m/s cap
+    np.testing.assert_array_equal(flew[:, 1], stored[:, 1])
+    assert np.any(np.abs(stored[:, 1]) > 0.5 + 1e-3)  # (the random actions climb beyond that cap: 0.5 is 0.25 m/s)
+    assert load_policy(tmp_path / "policy.pt").governor == GOVERNOR_PRESETS["swarm-slow-climb"]
 
 
 def test_the_companion_names_the_governor_it_flies_before_anything_else_can_fail(tmp_path):

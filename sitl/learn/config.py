@@ -146,6 +146,11 @@ class TrainConfig:
                                    "'Training with the governor in the loop')")
     governor_setting: str = _param("default", "with governor: its named settings (companion.governor."
                                               f"GOVERNOR_PRESETS): {describe_presets()}")
+    flight_governor_setting: str = _param("", "with governor: the named settings the exported policy flies with "
+                                              "(policy.json), which validation, the snapshot choice and the final "
+                                              "evaluation fly too; the training rollouts keep governor_setting "
+                                              "(e.g. swarm-slow-climb after training with swarm); empty: "
+                                              "governor_setting (docs/training.md 'The climb cap in the loop')")
     frame_stride: int = _param(1, "control steps between two of the 3 stacked depth frames (1: consecutive, the "
                                   "paper; 3: the stack spans 0.6 s; docs/training.md 'A frame stack spanning longer')")
     frame_ages: str = _param("", "age in control steps of each of the 3 stacked frames, oldest first, ending in 0, "
@@ -350,6 +355,11 @@ class TrainConfig:
         if self.governor_setting not in GOVERNOR_PRESETS:
             raise ValueError(f"unknown governor_setting {self.governor_setting!r}; choose one of "
                              f"{', '.join(GOVERNOR_PRESETS)}")
+        if self.flight_governor_setting and self.flight_governor_setting not in GOVERNOR_PRESETS:
+            raise ValueError(f"unknown flight_governor_setting {self.flight_governor_setting!r}; choose one of "
+                             f"{', '.join(GOVERNOR_PRESETS)}")
+        if self.flight_governor_setting and not self.governor:
+            raise ValueError("flight_governor_setting names the governor the policy flies with: it needs governor")
         if self.teacher_camera_limited and self.method != "distill" and self.teacher_bc_weight <= 0:
             raise ValueError("teacher_camera_limited needs a teacher: the distill method or teacher_bc_weight > 0")
         if not (0.5 <= self.teacher_time_horizon_s <= 20.0):

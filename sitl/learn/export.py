@@ -66,7 +66,7 @@ def git_commit() -> str:
 def export_policy(agent, path: str | Path, control_period_s: float, provenance: dict,
                   task: TaskSpec = DEFAULT_TASK_SPEC, onnx: bool = True, governor: GovernorSpec | None = None) -> None:
     """Write ``path`` as a TorchScript policy with ``policy.json`` metadata (``task``: what it was trained for;
-    ``governor``: the speed governor it was trained with, which then flies with it).
+    ``governor``: the speed governor it flies with, usually the one it was trained with).
 
     With ``onnx`` the same policy is also written beside it as ``<stem>.onnx`` (:func:`export_onnx`);
     without the ``onnx`` package that step is skipped with a note on stderr (a finished training run

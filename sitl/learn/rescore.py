@@ -30,8 +30,8 @@ import torch
 from sitl.cli_args import ArgumentParser, int_list
 from sitl.learn.agent import AgentConfig
 from sitl.learn.config import SelectionGate, TrainConfig, make_sim_config
-from sitl.learn.trainer import (agent_actor, evaluate_scenario, load_training_file, make_agent, select_snapshot,
-                                train_governor)
+from sitl.learn.trainer import (agent_actor, evaluate_scenario, flight_governor, load_training_file, make_agent,
+                                select_snapshot)
 from sitl.sim.episodes import ActorFactory
 from sitl.sim.scenarios import VALIDATION_SEED_OFFSET
 
@@ -56,7 +56,7 @@ def snapshot_actor(cfg: TrainConfig, agent_cfg: AgentConfig, snapshot: Path) -> 
     except Exception as err:  # noqa: BLE001 - a corrupt file or other networks: the same clear refusal
         raise ValueError(f"{snapshot}: not a snapshot of this run's networks ({str(err)[:200]})") from None
     agent.eval()
-    return agent_actor(agent, train_governor(cfg))
+    return agent_actor(agent, flight_governor(cfg))
 
 
 #: one scene to fly: (name, scenario, UAVs, random-scene density)

@@ -66,6 +66,15 @@ def train_governor(cfg: TrainConfig) -> GovernorSpec | None:
     return GOVERNOR_PRESETS[cfg.governor_setting] if cfg.governor else None
 
 
+def flight_governor(cfg: TrainConfig) -> GovernorSpec | None:
+    """The speed governor a run's policy flies with, or none: ``--flight-governor-setting`` if given, else the
+    training one. Validation, the selection gates, the final evaluation and the exported file use it; only the
+    training rollouts fly :func:`train_governor`'s."""
+    if not cfg.governor:
+        return None
+    return GOVERNOR_PRESETS[cfg.flight_governor_setting or cfg.governor_setting]
+
+
 def plot_learning_curve(history: dict, path: Path, title: str) -> None:
     """Paper Fig. 4 style: average episode reward (and success rate) against episodes.
 
@@ -463,7 +472,7 @@ class Trainer:
         """Deterministic evaluation on unseen seeds (test seeds by default), one summary per evaluation scenario,
         with the training episodes' time limit unless ``max_episode_steps`` is given."""
         cfg = replace(self.cfg, max_episode_steps=self.cfg.time_limit(max_episode_steps))
-        make_actor = agent_actor(self.agent, train_governor(cfg))
+        make_actor = agent_actor(self.agent, flight_governor(cfg))
         return {name: evaluate_scenario(make_actor, cfg, name, episodes, seed_offset + cfg.seed)
                 for name in evaluation_scenarios(cfg)}
 
@@ -684,6 +693,9 @@ class Trainer:
             provenance["obstacle_density"] = cfg.obstacle_density
         if cfg.density_range:  # random training episodes at a density drawn per episode, not --density alone
             provenance["density_range"] = cfg.density_range
+        if cfg.governor:  # policy.json's "governor" is the flight one; the rollouts may have flown another
+            provenance["governor_setting"] = {"training": cfg.governor_setting,
+                                              "flight": cfg.flight_governor_setting or cfg.governor_setting}
         if self.agent_cfg.privileged_critic:  # asymmetric actor-critic: not the paper's critic
             provenance["privileged_critic"] = {"neighbours": PRIVILEGED_NEIGHBOURS, "obstacle_point": True,
                                                "altitude": True, "module": "sitl.learn.privileged"}
@@ -727,7 +739,7 @@ class Trainer:
                         arrival_radius_m=self.sim_config.reward.arrival_radius_m,
                         max_episode_steps=self.sim_config.max_episode_steps)
         export_policy(self.agent, path, self.sim_config.control_period_s, provenance, task,
-                      governor=train_governor(cfg))
+                      governor=flight_governor(cfg))
         (self.run_dir / "final_eval.json").write_text(json.dumps(provenance, indent=2))
         self.writer.close()
         for name, summary in summaries.items():
