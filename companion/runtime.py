@@ -468,18 +468,21 @@ class Companion:
         scheduled = clock.next_tick_s
         self.step_index += 1
         late = period = None
+        # Measured from the last setpoint actually sent, not the last scheduled tick: an extra tick
+        # in between (a hold sent when inputs went stale) did reach the autopilot. Checked on extra ticks too:
+        # after a stall the first tick is often an extra one (the inputs went stale meanwhile), and it must
+        # know of the stall before it reads a mode change, or the autopilot's failsafe reads as the pilot.
+        gap_s = now - self._last_setpoint_s
+        if gap_s > STALL_WARN_S and self._streamed_last_tick:
+            self._last_stall = (now, gap_s)
+            self._streamed_last_tick = False  # one event per stall, whichever tick sees it first
+            self._event("stall", f"this computer stalled: no setpoint for {gap_s:.2f} s (autopilots leave "
+                        "OFFBOARD/GUIDED when setpoints stop: PX4 after COM_OF_LOSS_T, 1 s by default)",
+                        level="warning", gap_s=round(gap_s, 3))
         if not extra:
             late = now - scheduled
             period = None if self._last_tick_s is None else now - self._last_tick_s
             self._last_tick_s = now
-            # Measured from the last setpoint actually sent, not the last scheduled tick: an extra tick
-            # in between (a hold sent when inputs went stale) did reach the autopilot.
-            gap_s = now - self._last_setpoint_s
-            if gap_s > STALL_WARN_S and self._streamed_last_tick:
-                self._last_stall = (now, gap_s)
-                self._event("stall", f"this computer stalled: no setpoint for {gap_s:.2f} s (autopilots leave "
-                            "OFFBOARD/GUIDED when setpoints stop: PX4 after COM_OF_LOSS_T, 1 s by default)",
-                            level="warning", gap_s=round(gap_s, 3))
             self.tick_late_s.append(max(late, 0.0))
             if period is not None:
                 self.period_dev_s.append(abs(period - self.period_s))

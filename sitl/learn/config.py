@@ -149,7 +149,7 @@ class TrainConfig:
     flight_governor_setting: str = _param("", "with governor: the named settings the exported policy flies with "
                                               "(policy.json), which validation, the snapshot choice and the final "
                                               "evaluation fly too; the training rollouts keep governor_setting "
-                                              "(e.g. swarm-slow-climb after training with swarm); empty: "
+                                              "(e.g. the climb cap's setting after training with swarm); empty: "
                                               "governor_setting (docs/training.md 'The climb cap in the loop')")
     frame_stride: int = _param(1, "control steps between two of the 3 stacked depth frames (1: consecutive, the "
                                   "paper; 3: the stack spans 0.6 s; docs/training.md 'A frame stack spanning longer')")
