@@ -326,14 +326,14 @@ def test_flown_protocol_writes_cells_table_and_plot_and_resumes(tmp_path, capsys
     assert main(argv) == 0
     text = (out / "flown.md").read_text()
     for cell in ("random-small", "random-medium", "random-large", "circle-n8", "circle-n8-common", "circle-n8-scatter",
-                 "obstacles"):
+                 "obstacles", "random-medium-delay"):
         assert f"| {cell} | straight |" in text
     assert "below 3 m" in text and (out / "flown_success.png").stat().st_size > 1000
     data = json.loads((out / "flown.json").read_text())
     assert set(data["cells"]["obstacles"]["results"]["straight"]["by_goal_altitude"]) == {"below 3 m", "3-6 m",
                                                                                          "above 6 m"}
     assert main(argv) == 0
-    assert "0 computed, 8 reused" in capsys.readouterr().out
+    assert "0 computed, 9 reused" in capsys.readouterr().out
     assert main([*argv, "--cells", "obstacles,random-small"]) == 0  # a subset: only those cells, still reused
     printed = capsys.readouterr().out
     assert "0 computed, 2 reused" in printed and "| random-medium |" not in printed
@@ -379,3 +379,23 @@ def test_velocity_lag_max_widens_training_dynamics_only():
     for bad in (0.1, 9.0):
         with pytest.raises(ValueError, match="velocity_lag_max_s must be 0"):
             TrainConfig(velocity_lag_max_s=bad)
+
+
+def test_the_delay_cell_flies_random_medium_with_a_command_delay_drawn_per_uav():
+    """``random-medium-delay``: random medium's scene, every response field nominal but the command delay, drawn per
+    UAV within FLOWN_COMMAND_DELAY_S in the simulator the evaluation builds."""
+    from sitl.eval.evaluate import sim_config_for
+    from sitl.eval.flown import FLOWN_COMMAND_DELAY_S, flown_cells
+    from sitl.eval.methods import resolve_method
+    from sitl.sim.dynamics import describe_response, nominal_ranges
+    from sitl.sim.env import SwarmEnv
+
+    cells = {cell.name: cell for cell in flown_cells(episodes=2, jsbsim=False)}
+    delayed, plain = cells["random-medium-delay"].settings, cells["random-medium"].settings
+    assert delayed.scenario == plain.scenario and plain.response is None
+    lo, hi = FLOWN_COMMAND_DELAY_S
+    assert describe_response(delayed.response, nominal_ranges()) == f"command_delay_s={lo:g}:{hi:g}"
+    env = SwarmEnv(sim_config_for(resolve_method("straight"), delayed, num_worlds=4), seed=delayed.env_seed)
+    env.reset()
+    delays = env.dynamics.response["command_delay_s"]
+    assert lo <= delays.min() and delays.max() <= hi and np.ptp(delays) > (hi - lo) / 2

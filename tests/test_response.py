@@ -125,6 +125,60 @@ def test_parse_response():
             parse_response(bad, base)
 
 
+def test_command_delay_shifts_the_response_by_the_delay():
+    """``command_delay_s``: a UAV flies the command it was sent that long ago, so its velocity is the undelayed
+    UAV's, shifted by the delay (whole periods, and 0.06 s, three 0.02 s sub-steps); before its first command, and
+    again after a reset, it holds (the previous episode's commands are gone)."""
+    period = 0.1
+    dyn = KinematicDynamics(3)
+    dyn.response["command_delay_s"][:] = [0.0, 0.2, 0.06]
+    rows, active = np.arange(3), np.ones(3, dtype=bool)
+
+    def fly(ticks: int) -> np.ndarray:
+        dyn.reset(rows, np.tile([0.0, 0.0, -5.0], (3, 1)), np.zeros(3))
+        speeds = []
+        for k in range(ticks):
+            command = [2.0, -0.5, 0.3] if k < 10 else [0.5, 0.4, -0.2]
+            dyn.step(np.tile(command, (3, 1)), period, active)
+            speeds.append(dyn.vel_ned.copy())
+        return np.array(speeds)
+
+    first = fly(25)
+    assert np.all(first[:2, 1] == 0.0) and first[2, 1, 0] > 0  # two periods of hold, then the first command acts
+    np.testing.assert_allclose(first[2:, 1], first[:-2, 0], atol=1e-12)
+    with_sub_steps = KinematicDynamics(1, KinematicParams(substep_s=0.02))  # 0.06 s = 3 sub-steps: compare at 0.02 s
+    with_sub_steps.reset(np.arange(1), np.array([[0.0, 0.0, -5.0]]), np.zeros(1))
+    fine = []
+    for k in range(125):
+        with_sub_steps.step(np.array([[2.0, -0.5, 0.3] if k < 50 else [0.5, 0.4, -0.2]]), 0.02, active[:1])
+        fine.append(with_sub_steps.vel_ned[0].copy())
+    np.testing.assert_allclose(first[:, 2], np.array(fine)[np.arange(25) * 5 + 4 - 3], atol=1e-12)
+    again = fly(25)  # the same episode after a reset: the last episode's commands do not leak into it
+    np.testing.assert_array_equal(again, first)
+
+
+def test_command_delay_ranges():
+    """A delay range parses like the others, is off (no draw) by default and is bounded by MAX_COMMAND_DELAY_S."""
+    from sitl.sim.dynamics.kinematic import MAX_COMMAND_DELAY_S
+
+    base = nominal_ranges()
+    assert base.command_delay_s == (0.0, 0.0)
+    drawn = parse_response("command_delay_s=0:0.2", KinematicRandomization())
+    assert drawn.command_delay_s == (0.0, 0.2)
+    assert describe_response(drawn, KinematicRandomization()) == "command_delay_s=0:0.2"
+    with pytest.raises(ValueError, match="command_delay_s must be"):
+        parse_response(f"command_delay_s=0:{MAX_COMMAND_DELAY_S + 0.5:g}", base)
+    dyn, rng = KinematicDynamics(64), np.random.default_rng(0)
+    dyn.randomize(np.arange(64), drawn, rng)
+    delays = dyn.response["command_delay_s"]
+    assert 0.0 <= delays.min() < 0.05 and 0.15 < delays.max() <= 0.2
+    # Off draws nothing: the same generator then draws the same lags as before the field existed.
+    a, b = KinematicDynamics(8), KinematicDynamics(8)
+    a.randomize(np.arange(8), KinematicRandomization(), np.random.default_rng(3))
+    b.randomize(np.arange(8), drawn, np.random.default_rng(3))
+    np.testing.assert_array_equal(a.response["tau_horizontal_s"], b.response["tau_horizontal_s"])
+
+
 def test_swarm_test_response_reaches_the_simulator(tmp_path):
     """``swarm_test --response``: the drawn responses fly (slower UAVs need longer), the JSON records them,
     and the options that cannot go with it are refused in one line."""

@@ -434,13 +434,14 @@ def _cell_names(text: str) -> tuple[str, ...]:
 
 
 def parse_flown_args(argv: list[str] | None = None) -> argparse.Namespace:
-    from sitl.eval.flown import DEFAULT_EPISODES, FLOWN_CELL_NAMES
+    from sitl.eval.flown import DEFAULT_EPISODES, FLOWN_CELL_NAMES, FLOWN_COMMAND_DELAY_S
 
+    delay = "-".join(f"{d:g}" for d in FLOWN_COMMAND_DELAY_S)
     parser = ArgumentParser(
         prog="python -m sitl.swarm_test flown",
         description="The task as flown (issue 15): random small/medium/large scenes with starts and goals "
-                    "1.5-15 m above the ground, a circle of 8 at 2-15 m (radius 8-20 m), an obstacle scene and "
-                    "random medium on JSBSim; start jitter 0.5 m and camera noise everywhere; the straight "
+                    "1.5-15 m above the ground, circles of 8 at 2-15 m (radius 8-20 m), an obstacle scene, "
+                    f"random medium with a {delay} s command delay per UAV and random medium on JSBSim; start jitter 0.5 m and camera noise everywhere; the straight "
                     "reference beside every cell; success split by goal altitude. One JSON per cell and "
                     "controller under OUT/cells (an identical one is reused, so an interrupted run resumes); "
                     "OUT/flown.md, flown.json, flown_success.png.")

@@ -19,6 +19,10 @@ axis, static obstacles, the camera's noise, and a JSBSim cell. Cells (N = 8 each
   the spread fitted to PX4 SIH's vehicles (``--response px4-sih``; docs/real_autopilots.md "Fitting each
   vehicle's response"): where policies that fly every other circle meet on PX4 SIH;
 * ``obstacles``: poles, trees and boxes among the UAVs (:data:`OBSTACLE_SCENE_DENSITY`);
+* ``random-medium-delay``: ``random-medium`` with each UAV acting on its commands late, by a pure delay drawn
+  per UAV from :data:`FLOWN_COMMAND_DELAY_S` (the kinematic ``command_delay_s``): the tilt a real airframe needs
+  before it accelerates and the link's latency, what costs the JSBSim cell its points (docs/results.md "Why
+  JSBSim costs points"), at a kinematic cell's price;
 * ``random-medium-jsbsim``: ``random-medium`` on the JSBSim rigid-body backend.
 
 Every cell flies the controller and, on the same episodes, the straight-to-goal reference; it
@@ -54,6 +58,9 @@ PROTOCOL_N = 8
 #: The ``circle-n8-px4-sih`` cell: ``sitl.real_autopilots circle``'s default layout (radius, altitude m) and PX4
 #: SIH's start scatter (0.2-1.0 m off the ring in session 54's circles), with the ``px4-sih`` response.
 PX4_SIH_CIRCLE = dict(circle_radius_m=12.0, circle_alt_m=8.0, circle_scatter_m=1.0)
+#: The ``random-medium-delay`` cell's command delay range, s: a JSBSim F450 behaves like ~0.15 s from rest, PX4
+#: SIH's vehicles fit 0-0.25 s (``python -m sitl.real_autopilots fit``; docs/real_autopilots.md).
+FLOWN_COMMAND_DELAY_S = (0.0, 0.2)
 
 
 @dataclass
@@ -86,6 +93,9 @@ def flown_cells(episodes: int = DEFAULT_EPISODES, seed: int = 0, camera_noise: b
         response=parse_response("px4-sih", nominal_ranges()), **common)))
     cells.append(FlownCell("obstacles", EvalSettings(
         scenario=scenario_for("flown", "obstacles", density=OBSTACLE_SCENE_DENSITY), **common)))
+    cells.append(FlownCell("random-medium-delay", EvalSettings(
+        scenario=scenario_for("flown", "random", density=DENSITIES["medium"]),
+        response=replace(nominal_ranges(), command_delay_s=FLOWN_COMMAND_DELAY_S), **common)))
     if jsbsim:
         cells.append(FlownCell("random-medium-jsbsim", EvalSettings(
             scenario=scenario_for("flown", "random", density=DENSITIES["medium"]), dynamics="jsbsim",

@@ -10,8 +10,8 @@ _integrate`, one grid point per "UAV") and keeps, per vehicle, the parameters wh
 closest to the measured one:
 
 * horizontal: the lag ``tau_horizontal_s``, the PI loop against drag (``drag_horizontal_per_s``,
-  ``integral_horizontal_per_s2``; docs/simulator.md) and a pure command delay ``delay_s`` (the simulator has
-  none: reported so that a reader sees how much of the response is latency);
+  ``integral_horizontal_per_s2``; docs/simulator.md) and a pure command delay ``delay_s`` (the simulator's
+  ``command_delay_s``: how much of the response is latency);
 * vertical: ``tau_vertical_s``.
 
 The fit runs over each stretch of at least :data:`MIN_SEGMENT_S` in which the companion streamed velocity
@@ -32,7 +32,7 @@ import numpy as np
 
 from sitl.realtime.autopilot_sitl import PoseTrace
 from sitl.realtime.mavlink_swarm import JsonLinesTail
-from sitl.sim.dynamics.kinematic import _RESPONSE_FIELDS, KinematicParams, _integrate
+from sitl.sim.dynamics.kinematic import _LAW_FIELDS, KinematicParams, _integrate
 
 #: The grid searched (seconds, 1/s, 1/s^2): wide enough for a stiff racer and for PX4 SIH's default airframe.
 TAU_GRID_S = np.round(np.arange(0.15, 1.501, 0.05), 3)
@@ -125,7 +125,7 @@ def _replay(s: _Series, a: int, b: int, params: dict[str, np.ndarray], delay_s: 
     pos, vel = np.zeros((rows, 3)), np.tile(v0, (rows, 1))
     yaw, yaw_rate, err_int = np.zeros(rows), np.zeros(rows), np.zeros((rows, 2))
     cmd, active = np.zeros((rows, 3)), np.ones(rows, dtype=np.bool_)
-    arrays = [np.ascontiguousarray(params[name], dtype=np.float64) for name in _RESPONSE_FIELDS]
+    arrays = [np.ascontiguousarray(params[name], dtype=np.float64) for name in _LAW_FIELDS]
     yaw_at = np.interp(grid, s.t, s.yaw)
     delays, row_delay = np.unique(delay_s, return_inverse=True)  # few distinct delays: look each up once a step
     sample_step = np.clip(np.round((s.t[inside] - t0) / STEP_S).astype(int), 0, len(grid) - 1)
@@ -158,7 +158,7 @@ def fit_vehicle(run: Path, vehicle: int, trace: PoseTrace) -> VehicleFit:
     nominal = KinematicParams()
     tau, drag, ki, delay = (g.ravel() for g in np.meshgrid(TAU_GRID_S, DRAG_GRID_PER_S, INTEGRAL_GRID_PER_S2,
                                                           DELAY_GRID_S, indexing="ij"))
-    params = {name: np.full(len(tau), float(getattr(nominal, name))) for name in _RESPONSE_FIELDS}
+    params = {name: np.full(len(tau), float(getattr(nominal, name))) for name in _LAW_FIELDS}
     params |= {"tau_horizontal_s": tau, "drag_horizontal_per_s": drag, "integral_horizontal_per_s2": ki}
     err_h, samples = np.zeros(len(tau)), 0
     for a, b in segments:
@@ -169,7 +169,7 @@ def fit_vehicle(run: Path, vehicle: int, trace: PoseTrace) -> VehicleFit:
     plain = (drag == 0.0) & (ki == 0.0)
     lag_only = float(np.sqrt(err_h[plain].min() / samples))
     # Vertical: its law does not depend on the horizontal one; a second, small grid at the best delay.
-    vparams = {name: np.full(len(TAU_VERTICAL_GRID_S), float(getattr(nominal, name))) for name in _RESPONSE_FIELDS}
+    vparams = {name: np.full(len(TAU_VERTICAL_GRID_S), float(getattr(nominal, name))) for name in _LAW_FIELDS}
     vparams["tau_vertical_s"] = TAU_VERTICAL_GRID_S.astype(float)
     err_v = np.zeros(len(TAU_VERTICAL_GRID_S))
     for a, b in segments:
@@ -199,12 +199,15 @@ def fit_run(run: Path, vehicles: list[int] | None = None, progress=None) -> list
 
 #: The fitted fields that are simulator parameters (the rest describe the fit).
 FITTED_FIELDS = ("tau_horizontal_s", "drag_horizontal_per_s", "integral_horizontal_per_s2", "tau_vertical_s")
+#: Fitted fields with another name in the simulator's response (KinematicRandomization).
+_RESPONSE_NAME = {"delay_s": "command_delay_s"}
 
 
 def response_spec(fits: list[VehicleFit]) -> str:
-    """The ``--response`` specification spanning ``fits``: each fitted field from its smallest to its largest value."""
-    return ",".join(f"{name}={min(getattr(f, name) for f in fits):g}:{max(getattr(f, name) for f in fits):g}"
-                    for name in FITTED_FIELDS)
+    """The ``--response`` specification spanning ``fits``: each fitted field (and the delay, as
+    ``command_delay_s``) from its smallest to its largest value."""
+    return ",".join(f"{_RESPONSE_NAME.get(name, name)}={min(getattr(f, name) for f in fits):g}:"
+                    f"{max(getattr(f, name) for f in fits):g}" for name in (*FITTED_FIELDS, "delay_s"))
 
 
 def fit_summary(fits: list[VehicleFit]) -> dict:

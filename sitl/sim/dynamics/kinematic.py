@@ -15,6 +15,12 @@ controller output is capped). A step then gets only ``1 / (1 + kd tau)`` of the 
 quickly and the rest slowly, as the integrator builds up (time constant ~``(1/tau + kd) / ki``).
 PX4 SIH's default airframe flies like this (fit in docs/real_autopilots.md); ``kd = ki = 0``
 (the default) is the plain lag.
+
+A pure command delay ``command_delay_s`` (0: none) makes each UAV act on the command it was sent that
+long ago (zero-order hold between control periods): the time a real airframe needs to tilt before it
+accelerates, and the link's latency. A JSBSim F450 behaves like ~0.15 s of it from rest, PX4 SIH's
+vehicles fit 0-0.25 s (docs/results.md "Why JSBSim costs points"). Before its first command a UAV holds
+(a zero command), as an autopilot does before its first setpoint.
 Integration is explicit Euler on ``substep_s`` sub-steps of each control period.
 
 Every UAV has its own response (arrays in the backend): nominal :class:`KinematicParams` by
@@ -46,6 +52,7 @@ class KinematicParams:
     max_yaw_acc_rad_s2: float = 3.0
     drag_horizontal_per_s: float = 0.0  # linear air drag over mass, 1/s (0: none)
     integral_horizontal_per_s2: float = 0.0  # the velocity loop's integral gain, 1/s^2 (0: none)
+    command_delay_s: float = 0.0  # each command acts this long after it was sent, s (0: none)
     substep_s: float = 0.02
 
 
@@ -68,23 +75,31 @@ class KinematicRandomization:
     max_yaw_acc_rad_s2: tuple[float, float] = (2.0, 4.0)
     drag_horizontal_per_s: tuple[float, float] = (0.0, 0.0)
     integral_horizontal_per_s2: tuple[float, float] = (0.0, 0.0)
+    command_delay_s: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
         for name in _RESPONSE_FIELDS:
             lo, hi = getattr(self, name)
             may_be_zero = name in _MAY_BE_ZERO
-            if not ((lo >= 0.0) if may_be_zero else (lo > 0.0)) or not lo <= hi < 1000.0:
+            most = MAX_COMMAND_DELAY_S if name == "command_delay_s" else 1000.0
+            if not ((lo >= 0.0) if may_be_zero else (lo > 0.0)) or not lo <= hi <= most:
                 least = "0 <= low" if may_be_zero else "0 < low"
-                raise ValueError(f"{name} must be (low, high) with {least} <= high, got {(lo, hi)}")
+                raise ValueError(f"{name} must be (low, high) with {least} <= high <= {most:g}, got {(lo, hi)}")
             object.__setattr__(self, name, (float(lo), float(hi)))
 
 
-#: The per-UAV response fields shared by KinematicParams and KinematicRandomization.
-_RESPONSE_FIELDS = ("tau_horizontal_s", "tau_vertical_s", "tau_yaw_s", "max_acc_horizontal_m_s2",
-                    "max_acc_vertical_m_s2", "max_yaw_acc_rad_s2", "drag_horizontal_per_s",
-                    "integral_horizontal_per_s2")
+#: The per-UAV fields of the velocity law, in the order :func:`_integrate` takes them.
+_LAW_FIELDS = ("tau_horizontal_s", "tau_vertical_s", "tau_yaw_s", "max_acc_horizontal_m_s2",
+               "max_acc_vertical_m_s2", "max_yaw_acc_rad_s2", "drag_horizontal_per_s",
+               "integral_horizontal_per_s2")
+#: The per-UAV response fields shared by KinematicParams and KinematicRandomization: the law's, then the
+#: command delay (applied before the law, in :meth:`KinematicDynamics.step`). New fields go last, so that a
+#: range left off draws nothing and older runs draw (and fly) the episodes they did.
+_RESPONSE_FIELDS = (*_LAW_FIELDS, "command_delay_s")
 #: The fields that may be 0 (off); the others are time constants and limits, > 0.
-_MAY_BE_ZERO = ("drag_horizontal_per_s", "integral_horizontal_per_s2")
+_MAY_BE_ZERO = ("drag_horizontal_per_s", "integral_horizontal_per_s2", "command_delay_s")
+#: The longest command delay a response may draw, s (a command history of a few control periods is kept).
+MAX_COMMAND_DELAY_S = 1.0
 
 
 #: Named per-UAV response ranges for ``--response`` (:func:`parse_response`).
@@ -151,6 +166,9 @@ class KinematicDynamics(Dynamics):
         self.response = {name: np.full(num_uavs, float(getattr(params, name))) for name in _RESPONSE_FIELDS}
         #: [M, 2] the horizontal velocity loop's integrated error (NED, m/s * s); used when its gain is > 0.
         self.vel_error_int_ne = np.zeros((num_uavs, 2))
+        #: [M, K, 3] the last K commands sent to each UAV, newest first (zeros before its first one: hold);
+        #: read only where ``command_delay_s`` > 0. K grows with the longest delay (:meth:`_push_command`).
+        self.cmd_history_frd = np.zeros((num_uavs, 2, 3))
 
     def randomize(self, index: np.ndarray, ranges: KinematicRandomization | None, rng: np.random.Generator) -> None:
         """Draw the response of UAVs ``index`` from ``ranges`` (None: back to the nominal ``params``)."""
@@ -171,16 +189,37 @@ class KinematicDynamics(Dynamics):
         self.vel_ned[index] = 0.0
         self.yaw_rate_rad_s[index] = 0.0
         self.vel_error_int_ne[index] = 0.0
+        self.cmd_history_frd[index] = 0.0
 
     def step(self, cmd_frd: np.ndarray, dt_s: float, active: np.ndarray) -> None:
         p = self.params
         n_sub = max(1, int(round(dt_s / p.substep_s)))
-        _integrate(
-            self.pos_ned, self.vel_ned, self.yaw_rad, self.yaw_rate_rad_s, self.vel_error_int_ne,
-            np.ascontiguousarray(cmd_frd, dtype=np.float64), np.ascontiguousarray(active, dtype=np.bool_),
-            dt_s / n_sub, n_sub,
-            *(self.response[name] for name in _RESPONSE_FIELDS),
-        )
+        h = dt_s / n_sub
+        cmd = np.ascontiguousarray(cmd_frd, dtype=np.float64)
+        active = np.ascontiguousarray(active, dtype=np.bool_)
+        state = (self.pos_ned, self.vel_ned, self.yaw_rad, self.yaw_rate_rad_s, self.vel_error_int_ne)
+        law = [self.response[name] for name in _LAW_FIELDS]
+        delay_s = self.response["command_delay_s"]
+        self._push_command(cmd, float(delay_s.max()), dt_s)
+        if not delay_s.any():
+            _integrate(*state, cmd, active, h, n_sub, *law)
+            return
+        rows = np.arange(self.num_uavs)
+        for j in range(n_sub):
+            # At time j*h of this period a UAV acts on the newest command sent at least delay_s earlier; the
+            # commands were sent at 0, -dt, -2 dt, ... (-1e-9: a delay of exactly one period is one period back).
+            periods_back = np.maximum(np.ceil((delay_s - j * h) / dt_s - 1e-9), 0).astype(np.int64)
+            _integrate(*state, np.ascontiguousarray(self.cmd_history_frd[rows, periods_back]), active, h, 1, *law)
+
+    def _push_command(self, cmd_frd: np.ndarray, longest_delay_s: float, dt_s: float) -> None:
+        """Record this period's commands as the newest, keeping enough periods for ``longest_delay_s``."""
+        needed = int(math.ceil(longest_delay_s / dt_s - 1e-9)) + 1
+        if needed > self.cmd_history_frd.shape[1]:  # a longer delay drawn: older commands unknown, i.e. hold
+            grown = np.zeros((self.num_uavs, needed, 3))
+            grown[:, :self.cmd_history_frd.shape[1]] = self.cmd_history_frd
+            self.cmd_history_frd = grown
+        self.cmd_history_frd[:, 1:] = self.cmd_history_frd[:, :-1]  # numpy copies overlapping slices safely
+        self.cmd_history_frd[:, 0] = cmd_frd
 
 
 @numba.njit(cache=True)
