@@ -596,7 +596,8 @@ def test_validations_fly_their_own_time_limit_and_record_it(tmp_path):
 def test_training_flies_the_harsher_noise_and_records_it_evaluations_fly_the_occlusion_shadow(tmp_path):
     """Training and the trainer's validations keep the noise every recipe was trained with (holes on both
     sides of depth edges, TRAINING_STEREO_NOISE), and the policy file records it; the protocols fly
-    the sensor's occlusion shadow (StereoNoise's default)."""
+    the sensor's occlusion shadow (StereoNoise's default). The file records the response ranges its training
+    worlds drew too (here with a command delay)."""
     import dataclasses
 
     from companion.policy import load_policy
@@ -610,12 +611,16 @@ def test_training_flies_the_harsher_noise_and_records_it_evaluations_fly_the_occ
     cfg, agent_cfg = resolve_configs(
         {"camera": "realsense_d435", "camera_noise": True, "num_uavs": 2, "num_worlds": 2, "batch_size": 16,
          "init_steps": 20, "total_updates": 2, "eval_every_updates": 2, "eval_episodes": 2,
-         "final_eval_episodes": 0, "max_episode_steps": 20}, {"hidden_dim": 32})
+         "final_eval_episodes": 0, "max_episode_steps": 20, "randomize_dynamics": True,
+         "response": "command_delay_s=0:0.2"}, {"hidden_dim": 32})
     for scenario in (None, "random"):  # training worlds and the trainer's validations
         assert make_sim_config(cfg, 1, scenario_name=scenario).camera_noise.edge_holes == "both"
     make_trainer(cfg, agent_cfg, tmp_path / "run").run()
-    recorded = load_policy(tmp_path / "run" / "policy.pt").metadata["provenance"]["camera_noise_model"]
-    assert recorded == dataclasses.asdict(dataclasses.replace(TRAINING_STEREO_NOISE, min_range_m=0.2))
+    provenance = load_policy(tmp_path / "run" / "policy.pt").metadata["provenance"]
+    assert provenance["camera_noise_model"] == dataclasses.asdict(dataclasses.replace(TRAINING_STEREO_NOISE,
+                                                                                      min_range_m=0.2))
+    assert provenance["dynamics_randomization"]["command_delay_s"] == [0.0, 0.2]
+    assert provenance["dynamics_randomization"]["tau_horizontal_s"] == [0.15, 0.5]
 
 
 def test_camera_noise_edges_trains_and_validates_with_the_occlusion_shadow_and_refuses_an_unknown_model():

@@ -683,6 +683,8 @@ class Trainer:
         }
         if self.env.config.camera_noise is not None:  # the training worlds' noise, edge model included
             provenance["camera_noise_model"] = asdict(self.env.config.camera_noise)
+        if self.env.config.dynamics_randomization is not None:  # each UAV's response drawn per episode from these
+            provenance["dynamics_randomization"] = asdict(self.env.config.dynamics_randomization)
         if cfg.blind_motion_reward:  # not in the paper's reward
             provenance["blind_motion_reward"] = cfg.blind_motion_reward
         if cfg.corridor_speed_reward:  # not in the paper's reward either
