@@ -16,9 +16,10 @@ ideal depth). Target (issue 15): the 2 m flight of 15 m arrives within 20 s. The
 output is one JSON object.
 
 Usage: ``python benchmarks/low_flight.py [--policy models/policy.pt] [--altitudes 2 3 5]
-[--distance 15] [--governor] [--smoke]`` (``--smoke``: one 2 m flight of 5 m; what CI runs;
-``--governor``: the companion with its speed governor; each flight's ``governor`` is the setting the companion
-logged it flies, from the flag or from a policy file trained with one).
+[--distance 15] [--governor] [--vehicle-response SPEC] [--smoke]`` (``--smoke``: one 2 m flight of 5 m; what CI
+runs; ``--governor``: the companion with its speed governor; each flight's ``governor`` is the setting the companion
+logged it flies, from the flag or from a policy file trained with one; ``--vehicle-response``: the vehicle's
+velocity response, ``sitl.vehicle --response``, e.g. ``command_delay_s=0.15`` for an airframe that acts 0.15 s late).
 """
 
 from __future__ import annotations
@@ -48,8 +49,9 @@ def vehicle_camera(policy: Path) -> str:
 
 
 def fly(policy: Path, camera: str, altitude_m: float, distance_m: float, folder: Path,
-        timeout_s: float = FLIGHT_TIMEOUT_S, governor: bool = False) -> dict:
-    """One flight from the ground; the measured figures (see the module doc)."""
+        timeout_s: float = FLIGHT_TIMEOUT_S, governor: bool = False, vehicle_response: str | None = None) -> dict:
+    """One flight from the ground; the measured figures (see the module doc). ``vehicle_response``: the vehicle's
+    ``--response`` (None: nominal)."""
     folder.mkdir(parents=True, exist_ok=True)
     mav, depth = free_udp_ports(2)
     trace, clog = folder / "trace.jsonl", folder / "companion.jsonl"
@@ -58,7 +60,7 @@ def fly(policy: Path, camera: str, altitude_m: float, distance_m: float, folder:
     procs.start("vehicle", [
         "-m", "sitl.vehicle", "--base-port", str(mav), "--depth-port", str(depth), "--gcs-port", "0",
         "--camera", camera, "--trace", str(trace), "--log", str(folder / "vehicle.jsonl"),
-        "--duration", str(timeout_s + 60)])
+        "--duration", str(timeout_s + 60), *(["--response", vehicle_response] if vehicle_response else [])])
     companion = procs.start("companion", [
         "-m", "companion.cli", "--connect", f"udpin:127.0.0.1:{mav}", "--model", str(policy),
         "--camera", f"sitl:{depth}", "--arm", "--takeoff", f"{altitude_m:g}",
@@ -96,6 +98,9 @@ def main() -> None:
     parser.add_argument("--timeout", type=float, default=None,
                         help=f"companion --timeout per flight in s (default {FLIGHT_TIMEOUT_S:g}; 30 with --smoke)")
     parser.add_argument("--governor", action="store_true", help="fly the companion with --governor (docs/companion.md)")
+    parser.add_argument("--vehicle-response", metavar="SPEC", default=None,
+                        help="the vehicle's velocity response (sitl.vehicle --response), e.g. command_delay_s=0.15; "
+                             "default nominal")
     parser.add_argument("--smoke", action="store_true", help="CI check: one 2 m flight of 5 m")
     args = parser.parse_args()
     altitudes = args.altitudes or ([2.0] if args.smoke else [2.0, 3.0, 5.0])
@@ -104,6 +109,13 @@ def main() -> None:
         raise SystemExit(f"error: policy file {args.policy} not found")
     if min(altitudes) < 1.0 or distance <= 0:
         raise SystemExit("error: --altitudes must be >= 1 m and --distance > 0")
+    if args.vehicle_response:
+        from sitl.cli_args import response_spec
+
+        try:
+            response_spec(args.vehicle_response)
+        except argparse.ArgumentTypeError as exc:  # refused here, in one line, not by the vehicle mid-run
+            raise SystemExit(f"error: --vehicle-response: {exc}") from None
     try:
         camera = vehicle_camera(args.policy)
     except ValueError as exc:  # not a policy file, or a camera no simulated sensor carries
@@ -113,7 +125,8 @@ def main() -> None:
         base = args.out or Path(scratch)
         for alt in altitudes:
             row = fly(args.policy, camera, alt, distance, base / f"alt_{alt:g}",
-                      args.timeout or (30.0 if args.smoke else FLIGHT_TIMEOUT_S), args.governor)
+                      args.timeout or (30.0 if args.smoke else FLIGHT_TIMEOUT_S), args.governor,
+                      args.vehicle_response)
             rows.append(row)
             print(f"takeoff {alt:g} m, goal {distance:g} m ahead: "
                   + (f"arrived in {row['flight_s']:.1f} s, {row['arrival_error_m']:.2f} m off, altitude "
@@ -121,7 +134,8 @@ def main() -> None:
                      else f"did not arrive ({row.get('error', 'timeout')})"), flush=True)
     two = next((r for r in rows if r["altitude_m"] == 2.0 and distance == 15.0), None)
     print(json.dumps({"benchmark": "low_flight", "policy": str(args.policy), "camera": camera,
-                      "governor_flag": args.governor, "flights": rows,
+                      "governor_flag": args.governor, "vehicle_response": args.vehicle_response or "nominal",
+                      "flights": rows,
                       "target_flight_s": TARGET_FLIGHT_S,
                       "target_met": None if two is None else bool(two.get("flight_s", 1e9) <= TARGET_FLIGHT_S)}))
 

@@ -170,6 +170,17 @@ def finite_floats(count: tuple[int, ...], name: str):
     return parse
 
 
+def response_spec(text: str):
+    """A ``--response`` specification over the nominal kinematic response (:func:`sitl.sim.dynamics.parse_response`):
+    a :class:`sitl.sim.dynamics.KinematicRandomization`."""
+    from sitl.sim.dynamics import nominal_ranges, parse_response  # numba-compiled: only where the option is used
+
+    try:
+        return parse_response(text, nominal_ranges())
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+
+
 def cylinder(text: str) -> list[float]:
     """``N,E,R[,H]``: a pole at N,E (m) with radius R > 0 and height H > 0."""
     values = finite_floats((3, 4), "--cylinder")(text)

@@ -114,8 +114,8 @@ def test_train_speed_profiles_a_narrower_encoder():
 
 
 def test_low_flight_refuses_a_policy_it_cannot_fly_in_one_line(tmp_path):
-    """A file that is no policy, and a policy whose camera no simulated sensor carries (120 deg wide): one line
-    naming the problem, exit 1, no traceback and no flight."""
+    """A file that is no policy, a policy whose camera no simulated sensor carries (120 deg wide), and a vehicle
+    response the simulator cannot fly: one line naming the problem, exit 1, no traceback and no flight."""
     import dataclasses
 
     from companion.spec import REALSENSE_D435
@@ -124,9 +124,11 @@ def test_low_flight_refuses_a_policy_it_cannot_fly_in_one_line(tmp_path):
     junk = tmp_path / "junk.pt"
     junk.write_bytes(b"not a policy")
     odd = make_policy(tmp_path / "odd.pt", camera=dataclasses.replace(REALSENSE_D435, hfov_deg=120.0))
-    for path, message in ((junk, "not a TorchScript policy file"),
-                          (odd, "no camera preset has a 120 x 58.0 deg field of view with a 10 m range")):
-        proc = subprocess.run([sys.executable, str(BENCHMARKS / "low_flight.py"), "--smoke", "--policy", str(path)],
-                              cwd=REPO, env=env(), capture_output=True, text=True, timeout=SMOKE_TIMEOUT_S)
+    bundled = REPO / "models" / "policy.pt"
+    for path, extra, message in ((junk, [], "not a TorchScript policy file"),
+                                 (odd, [], "no camera preset has a 120 x 58.0 deg field of view with a 10 m range"),
+                                 (bundled, ["--vehicle-response", "command_delay_s=2"], "command_delay_s must be")):
+        proc = subprocess.run([sys.executable, str(BENCHMARKS / "low_flight.py"), "--smoke", "--policy", str(path),
+                               *extra], cwd=REPO, env=env(), capture_output=True, text=True, timeout=SMOKE_TIMEOUT_S)
         assert proc.returncode == 1 and message in proc.stderr, proc.stderr[-2000:]
         assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1 and proc.stdout == ""

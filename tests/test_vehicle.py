@@ -3,6 +3,7 @@ towards a companion (this test plays the companion with pymavlink)."""
 
 from __future__ import annotations
 
+import json
 import math
 import socket
 import subprocess
@@ -158,3 +159,29 @@ def test_vehicle_rejects_bad_options():
     out = subprocess.run([sys.executable, "-m", "sitl.vehicle", "--airborne"], capture_output=True, text=True,
                          env=env(), timeout=60)
     assert out.returncode == 2 and "--airborne needs a start altitude" in out.stderr
+
+
+def test_vehicle_response_draws_each_vehicles_response_once_and_says_so(tmp_path):
+    """``--response``: the vehicle flies a drawn response (here a command delay and a slower lag), logged before
+    ``ready``; jsbsim and a bad spec are refused in one line."""
+    from tests.companion_helpers import free_udp_ports
+
+    log = tmp_path / "vehicle.jsonl"
+    mav, depth = free_udp_ports(2)
+    out = subprocess.run([sys.executable, "-m", "sitl.vehicle", "--response", "command_delay_s=0.1:0.2,tau_horizontal_s=0.4",
+                          "--duration", "1", "--gcs-port", "0", "--base-port", str(mav), "--depth-port", str(depth),
+                          "--log", str(log)], capture_output=True, text=True, env=env(), timeout=60)
+    assert out.returncode == 0, out.stderr
+    events = [json.loads(line) for line in log.read_text().splitlines()]
+    drawn = next(e for e in events if e["event"] == "response")
+    assert drawn["spec"] == "tau_horizontal_s=0.4,command_delay_s=0.1:0.2"
+    [vehicle] = drawn["vehicles"]
+    assert vehicle["tau_horizontal_s"] == 0.4 and 0.1 <= vehicle["command_delay_s"] <= 0.2
+    assert vehicle["tau_vertical_s"] == 0.25  # what the spec does not name stays nominal
+    assert next(e for e in events if e["event"] == "ready")["response"] == drawn["spec"]
+    for argv, why in [(["--response", "command_delay_s=0.1", "--dynamics", "jsbsim"], "kinematic backend"),
+                      (["--response", "command_delay_s=3"], "command_delay_s must be")]:
+        bad = subprocess.run([sys.executable, "-m", "sitl.vehicle", *argv], capture_output=True, text=True, env=env(),
+                             timeout=60)
+        assert bad.returncode == 2 and why in bad.stderr and "Traceback" not in bad.stderr
+        assert bad.stderr.strip().count("\n") == 0

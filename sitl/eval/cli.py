@@ -57,6 +57,7 @@ from sitl.cli_args import (
     output_dir,
     output_file_in_new_dir,
     port_in,
+    response_spec,
 )
 from sitl.eval.over_mavlink import evaluate_beside_in_process
 from sitl.eval.evaluate import EvalResult, EvalSettings, density_label, evaluate_method
@@ -64,8 +65,7 @@ from sitl.eval.methods import BASELINES, DEFAULT_POLICY, EvaluationError, resolv
 from sitl.eval.paper import DEFAULT_FIG6_NS, PAPER_METHODS, paper_cells, parse_policies, run_paper
 from sitl.eval.report import write_json, markdown_table
 from sitl.sim.config import CIRCLE_HEADINGS, CIRCLE_RADIUS_M, DENSITIES, SCENARIOS, ScenarioConfig, density_from_name
-from sitl.sim.dynamics import (DYNAMICS_NAMES, RESPONSE_PRESETS, KinematicRandomization, nominal_ranges,
-                               parse_response)
+from sitl.sim.dynamics import DYNAMICS_NAMES, RESPONSE_PRESETS
 from sitl.sim.scenarios import EVAL_SEED_OFFSET
 
 #: Bounds of the evaluation's sizes: beyond them a run would only exhaust memory or never end.
@@ -136,7 +136,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--scatter", type=float_range(0.0, MAX_RADIUS_M), default=0.0, metavar="M",
                         help="circle starts moved horizontally to a uniform point within M metres of the ring, goals "
                              "at the nominal antipodes (default 0; PX4 SIH's starts: ~1 m)")
-    parser.add_argument("--response", type=_response, default=None, metavar="SPEC",
+    parser.add_argument("--response", type=response_spec, default=None, metavar="SPEC",
                         help="each UAV's velocity response drawn per UAV and episode (kinematic dynamics): a preset "
                              f"({', '.join(RESPONSE_PRESETS)}: fitted to that autopilot's vehicles) or "
                              "FIELD=LOW:HIGH items, comma-separated, over the nominal response (e.g. "
@@ -210,14 +210,6 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         parser.error(str(err))
     args.parser = parser
     return args
-
-
-def _response(text: str) -> KinematicRandomization:
-    """A ``--response`` specification over the nominal response (sitl.sim.dynamics.parse_response)."""
-    try:
-        return parse_response(text, nominal_ranges())
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(str(err)) from None
 
 
 def _density(text: str) -> str:

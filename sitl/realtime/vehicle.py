@@ -45,13 +45,15 @@ from sitl.cli_args import (
     finite_floats,
     host,
     int_range,
+    integer,
     output_file,
     positive_float,
+    response_spec,
     udp_port,
     udp_port_nonzero,
 )
 from sitl.sim.collision import uav_uav_collisions
-from sitl.sim.dynamics import DYNAMICS_NAMES, make_dynamics
+from sitl.sim.dynamics import DYNAMICS_NAMES, KinematicRandomization, describe_response, make_dynamics, nominal_ranges
 from sitl.sim.metrics import Outcome
 from sitl.realtime.camera_feed import CameraConfig, CameraFeed, add_camera_arguments, camera_config, check_camera_arguments
 from sitl.realtime.event_log import EventLog
@@ -93,6 +95,9 @@ class VehiclesConfig:
     collision_radius_m: float = DEFAULT_TASK_SPEC.collision_radius_m
     transport: str = "udp"  # "tcp": vehicle i listens on TCP host:base_port + 10*i (ArduPilot SITL SERIAL1)
     guided_timeout_s: float | None = None  # ArduPilot GUID_TIMEOUT; None: the autopilot model's default
+    #: kinematic only: each vehicle's velocity response drawn once, at start, from these ranges (None: nominal)
+    response: KinematicRandomization | None = None
+    response_seed: int = 0  # seed of that draw
 
     @property
     def n(self) -> int:
@@ -115,6 +120,13 @@ class SimulatedVehicles:
         self.dynamics = make_dynamics(config.dynamics, n)
         self.dynamics.reset(np.arange(n), np.asarray(config.starts_ned, dtype=np.float64),
                             np.asarray(config.yaws_rad, dtype=np.float64))
+        if config.response is not None:
+            # A vehicle that responds like a fitted airframe (`sitl.real_autopilots fit` prints the spec), its
+            # command delay included; the ``response`` event says what each vehicle got.
+            self.dynamics.randomize(np.arange(n), config.response, np.random.default_rng(config.response_seed))
+            log("response", spec=describe_response(config.response, nominal_ranges()),
+                vehicles=[{name: round(float(values[i]), 4) for name, values in self.dynamics.response.items()}
+                          for i in range(n)])
         self.feed = CameraFeed(config.camera, config.host, config.depth_port, n)
         self.autopilots: list[SimAutopilot] = []
         for i in range(n):
@@ -296,6 +308,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                              "--start, --spacing and --yaw-deg")
     parser.add_argument("--airborne", action="store_true", help="start armed and hovering at --start (needs D < -0.5)")
     parser.add_argument("--dynamics", choices=DYNAMICS_NAMES, default="kinematic")
+    parser.add_argument("--response", type=response_spec, default=None, metavar="SPEC",
+                        help="kinematic only: each vehicle's velocity response, drawn once at start: a preset "
+                             "(px4-sih) or FIELD=LOW:HIGH / FIELD=VALUE items over the nominal response, e.g. "
+                             "command_delay_s=0.15 (an airframe that acts 0.15 s late) or the spec `python -m "
+                             "sitl.real_autopilots fit RUN` prints (docs/simulator.md); default nominal")
+    parser.add_argument("--response-seed", type=integer, default=0, metavar="N",
+                        help="seed of the --response draw (default 0)")
     add_camera_arguments(parser)
     parser.add_argument("--signing-key", metavar="FILE", help="MAVLink 2 signing key: sign all, refuse unsigned")
     parser.add_argument("--odometry-child-frame", choices=("local_ned", "body_frd"), default="local_ned",
@@ -314,6 +333,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
             parser.error(f"--base-port {args.base_port}: the TCP ports of {args.n} vehicles (every 10th) would pass 65535")
     else:
         check_port_block(parser, "--base-port", args.base_port, args.n)
+    if args.response is not None and args.dynamics != "kinematic":
+        parser.error(f"--response draws the kinematic backend's response; --dynamics {args.dynamics} has its own")
     if args.guid_timeout is not None and args.autopilot != "ardupilot":
         parser.error("--guid-timeout is an ArduPilot parameter (use it with --autopilot ardupilot)")
     check_port_block(parser, "--depth-port", args.depth_port, args.n)
@@ -354,7 +375,8 @@ def vehicles_config(args: argparse.Namespace) -> VehiclesConfig:
         starts_ned=starts, yaws_rad=yaws, autopilot=AutopilotKind(args.autopilot), host=args.host,
         base_port=args.base_port, depth_port=args.depth_port, gcs_port=args.gcs_port, airborne=args.airborne,
         dynamics=args.dynamics, camera=camera_config(args), signing_key=key,
-        odometry_child_frame=args.odometry_child_frame, transport=args.transport, guided_timeout_s=args.guid_timeout)
+        odometry_child_frame=args.odometry_child_frame, transport=args.transport, guided_timeout_s=args.guid_timeout,
+        response=args.response, response_seed=args.response_seed)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -366,7 +388,8 @@ def main(argv: list[str] | None = None) -> int:
     ready = dict(n=config.n, autopilot=args.autopilot, dynamics=config.dynamics,
                  onboard_ports=[config.onboard_port(i) for i in range(config.n)], transport=config.transport,
                  depth_ports=[config.depth_port + i for i in range(config.n)], gcs_port=config.gcs_port or None,
-                 camera=config.camera.describe(), signing=config.signing_key is not None)
+                 camera=config.camera.describe(), signing=config.signing_key is not None,
+                 response=describe_response(config.response, nominal_ranges()) if config.response else "nominal")
     connect = (f"tcp:{config.host}:{config.base_port}+10i" if config.transport == "tcp"
                else f"udp:{config.base_port}+i")
     banner = (f"sitl.vehicle: {config.n} {args.autopilot} vehicle(s) up; companion i: --connect "
