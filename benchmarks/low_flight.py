@@ -112,9 +112,11 @@ def main() -> None:
     if args.vehicle_response:
         from sitl.cli_args import response_spec
 
-        try:
-            response_spec(args.vehicle_response)
-        except argparse.ArgumentTypeError as exc:  # refused here, in one line, not by the vehicle mid-run
+        from sitl.sim.dynamics import describe_response, nominal_ranges
+
+        try:  # refused here, in one line, not by the vehicle mid-run; recorded in one canonical form
+            args.vehicle_response = describe_response(response_spec(args.vehicle_response), nominal_ranges())
+        except argparse.ArgumentTypeError as exc:
             raise SystemExit(f"error: --vehicle-response: {exc}") from None
     try:
         camera = vehicle_camera(args.policy)

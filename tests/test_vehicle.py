@@ -180,7 +180,9 @@ def test_vehicle_response_draws_each_vehicles_response_once_and_says_so(tmp_path
     assert vehicle["tau_vertical_s"] == 0.25  # what the spec does not name stays nominal
     assert next(e for e in events if e["event"] == "ready")["response"] == drawn["spec"]
     for argv, why in [(["--response", "command_delay_s=0.1", "--dynamics", "jsbsim"], "kinematic backend"),
-                      (["--response", "command_delay_s=3"], "command_delay_s must be")]:
+                      (["--response", "command_delay_s=3"], "command_delay_s must be"),
+                      (["--response-seed", "2"], "give --response too"),
+                      (["--response", "command_delay_s=0.1", "--response-seed", "-1"], "must be >= 0")]:
         bad = subprocess.run([sys.executable, "-m", "sitl.vehicle", *argv], capture_output=True, text=True, env=env(),
                              timeout=60)
         assert bad.returncode == 2 and why in bad.stderr and "Traceback" not in bad.stderr

@@ -433,7 +433,8 @@ def parse_flown_args(argv: list[str] | None = None) -> argparse.Namespace:
         prog="python -m sitl.swarm_test flown",
         description="The task as flown (issue 15): random small/medium/large scenes with starts and goals "
                     "1.5-15 m above the ground, circles of 8 at 2-15 m (radius 8-20 m), an obstacle scene, "
-                    f"random medium with a {delay} s command delay per UAV and random medium on JSBSim; start jitter 0.5 m and camera noise everywhere; the straight "
+                    f"random medium with a {delay} s command delay per UAV and random medium on JSBSim; "
+                    "start jitter 0.5 m and camera noise everywhere; the straight "
                     "reference beside every cell; success split by goal altitude. One JSON per cell and "
                     "controller under OUT/cells (an identical one is reused, so an interrupted run resumes); "
                     "OUT/flown.md, flown.json, flown_success.png.")

@@ -112,6 +112,8 @@ def _cell_key(cell: FlownCell, method: Method) -> dict:
     settings = json.loads(json.dumps(dataclasses.asdict(replace(cell.settings, record_paths=False))))
     if settings.get("response") is None:  # cells with the nominal response keep the keys they were stored with
         settings.pop("response", None)
+    elif settings["response"].get("command_delay_s") == [0.0, 0.0]:  # likewise cells stored before the delay existed
+        del settings["response"]["command_delay_s"]
     key = {"protocol": "flown", "cell": cell.name, "method": method.label, "settings": settings,
            "policy_sha256": file_digest(method.path) if method.path else None}
     if method.governor is not None:  # only then: the keys of stored ungoverned cells stay as they were
@@ -186,7 +188,10 @@ def run_flown(out: Path, cells: list[FlownCell], methods: list[Method], progress
                   f"training and validation), camera noise "
                   f"{'on: ' + str(dataclasses.asdict(first.noise_model)) if first.camera_noise else 'off'}, "
                   f"time limit {first.max_episode_steps} steps, dynamics kinematic (nominal) except the jsbsim "
-                  "cell and circle-n8-px4-sih (each UAV's response drawn from the px4-sih ranges).",
+                  "cell, circle-n8-px4-sih (each UAV's response drawn from the px4-sih ranges) and "
+                  "random-medium-delay (a command delay drawn per UAV in "
+                  f"{FLOWN_COMMAND_DELAY_S[0]:g}-{FLOWN_COMMAND_DELAY_S[1]:g} s; its episodes are not "
+                  "random-medium's: the draw moves the episode generator).",
                   ""]
     for m in methods:
         if m.path:

@@ -45,7 +45,6 @@ from sitl.cli_args import (
     finite_floats,
     host,
     int_range,
-    integer,
     output_file,
     positive_float,
     response_spec,
@@ -312,8 +311,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         help="kinematic only: each vehicle's velocity response, drawn once at start: a preset "
                              "(px4-sih) or FIELD=LOW:HIGH / FIELD=VALUE items over the nominal response, e.g. "
                              "command_delay_s=0.15 (an airframe that acts 0.15 s late) or the spec `python -m "
-                             "sitl.real_autopilots fit RUN` prints (docs/simulator.md); default nominal")
-    parser.add_argument("--response-seed", type=integer, default=0, metavar="N",
+                             "sitl.real_autopilots fit RUN` prints (docs/simulator.md); the vehicle's own takeoff, "
+                             "hold and landing fly it too; default nominal")
+    parser.add_argument("--response-seed", type=int_range(0), default=None, metavar="N",
                         help="seed of the --response draw (default 0)")
     add_camera_arguments(parser)
     parser.add_argument("--signing-key", metavar="FILE", help="MAVLink 2 signing key: sign all, refuse unsigned")
@@ -335,6 +335,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         check_port_block(parser, "--base-port", args.base_port, args.n)
     if args.response is not None and args.dynamics != "kinematic":
         parser.error(f"--response draws the kinematic backend's response; --dynamics {args.dynamics} has its own")
+    if args.response_seed is not None and args.response is None:
+        parser.error("--response-seed seeds the --response draw: give --response too")
     if args.guid_timeout is not None and args.autopilot != "ardupilot":
         parser.error("--guid-timeout is an ArduPilot parameter (use it with --autopilot ardupilot)")
     check_port_block(parser, "--depth-port", args.depth_port, args.n)
@@ -376,7 +378,7 @@ def vehicles_config(args: argparse.Namespace) -> VehiclesConfig:
         base_port=args.base_port, depth_port=args.depth_port, gcs_port=args.gcs_port, airborne=args.airborne,
         dynamics=args.dynamics, camera=camera_config(args), signing_key=key,
         odometry_child_frame=args.odometry_child_frame, transport=args.transport, guided_timeout_s=args.guid_timeout,
-        response=args.response, response_seed=args.response_seed)
+        response=args.response, response_seed=args.response_seed or 0)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -17,7 +17,8 @@ PX4 SIH's default airframe flies like this (fit in docs/real_autopilots.md); ``k
 (the default) is the plain lag.
 
 A pure command delay ``command_delay_s`` (0: none) makes each UAV act on the command it was sent that
-long ago (zero-order hold between control periods): the time a real airframe needs to tilt before it
+long ago, rounded up to the integration sub-step (zero-order hold between control periods; ``step`` must then be
+called with the same ``dt_s`` every time, as the env and ``sitl.vehicle`` do): the time a real airframe needs to tilt before it
 accelerates, and the link's latency. A JSBSim F450 behaves like ~0.15 s of it from rest, PX4 SIH's
 vehicles fit 0-0.25 s (docs/results.md "Why JSBSim costs points"). Before its first command a UAV holds
 (a zero command), as an autopilot does before its first setpoint.
@@ -40,6 +41,11 @@ import numpy as np
 from sitl.sim.dynamics.base import Dynamics
 
 
+#: The longest command delay a response may have, s (the command history kept grows with it: ceil(delay / dt_s) + 1
+#: periods).
+MAX_COMMAND_DELAY_S = 1.0
+
+
 @dataclass(frozen=True)
 class KinematicParams:
     """Response of the velocity controller (defaults close to PX4's multicopter defaults)."""
@@ -52,8 +58,12 @@ class KinematicParams:
     max_yaw_acc_rad_s2: float = 3.0
     drag_horizontal_per_s: float = 0.0  # linear air drag over mass, 1/s (0: none)
     integral_horizontal_per_s2: float = 0.0  # the velocity loop's integral gain, 1/s^2 (0: none)
-    command_delay_s: float = 0.0  # each command acts this long after it was sent, s (0: none)
+    command_delay_s: float = 0.0  # each command acts this long after it was sent (up to a sub-step later), s (0: none)
     substep_s: float = 0.02
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.command_delay_s <= MAX_COMMAND_DELAY_S:  # NaN fails too
+            raise ValueError(f"command_delay_s must be in [0, {MAX_COMMAND_DELAY_S:g}] s, got {self.command_delay_s}")
 
 
 @dataclass(frozen=True)
@@ -93,13 +103,12 @@ _LAW_FIELDS = ("tau_horizontal_s", "tau_vertical_s", "tau_yaw_s", "max_acc_horiz
                "max_acc_vertical_m_s2", "max_yaw_acc_rad_s2", "drag_horizontal_per_s",
                "integral_horizontal_per_s2")
 #: The per-UAV response fields shared by KinematicParams and KinematicRandomization: the law's, then the
-#: command delay (applied before the law, in :meth:`KinematicDynamics.step`). New fields go last, so that a
-#: range left off draws nothing and older runs draw (and fly) the episodes they did.
+#: command delay (applied before the law, in :meth:`KinematicDynamics.step`). A range that is off (high 0) draws
+#: nothing, so runs without a delay fly the episodes they did; new fields go last, so that the others' draws keep
+#: their order when one is drawn.
 _RESPONSE_FIELDS = (*_LAW_FIELDS, "command_delay_s")
 #: The fields that may be 0 (off); the others are time constants and limits, > 0.
 _MAY_BE_ZERO = ("drag_horizontal_per_s", "integral_horizontal_per_s2", "command_delay_s")
-#: The longest command delay a response may draw, s (a command history of a few control periods is kept).
-MAX_COMMAND_DELAY_S = 1.0
 
 
 #: Named per-UAV response ranges for ``--response`` (:func:`parse_response`).
@@ -109,6 +118,9 @@ MAX_COMMAND_DELAY_S = 1.0
 #: 0.7-1.05 s, drag 0.15-0.8 /s, integral 0-0.4 /s^2, vertical lag 0.05-0.3 s). Flown again in session 59 with PX4's
 #: heading estimate corrected (``PX4_SIH_PARAMS``), the 128 fits of 16 runs whose companions kept up spanned lag
 #: 0.7-1.05 s, drag 0.35-0.85 /s, integral 0.1-0.3 /s^2, vertical lag 0.05-0.35 s: the same ranges.
+#: The preset leaves out the delay those fits also found (0-0.25 s, ``command_delay_s``): its cell
+#: (``circle-n8-px4-sih``) and the runs trained with it keep the response they were measured with; add
+#: ``command_delay_s=0:0.2`` to the specification to fly it.
 RESPONSE_PRESETS: dict[str, dict[str, tuple[float, float]]] = {
     "px4-sih": {"tau_horizontal_s": (0.7, 1.0), "drag_horizontal_per_s": (0.3, 0.8),
                 "integral_horizontal_per_s2": (0.1, 0.3), "tau_vertical_s": (0.1, 0.3)},
@@ -167,7 +179,8 @@ class KinematicDynamics(Dynamics):
         #: [M, 2] the horizontal velocity loop's integrated error (NED, m/s * s); used when its gain is > 0.
         self.vel_error_int_ne = np.zeros((num_uavs, 2))
         #: [M, K, 3] the last K commands sent to each UAV, newest first (zeros before its first one: hold);
-        #: read only where ``command_delay_s`` > 0. K grows with the longest delay (:meth:`_push_command`).
+        #: kept and read only while some UAV has ``command_delay_s`` > 0 (its delay is drawn after its reset, which
+        #: clears its row). K grows with the longest delay (:meth:`_push_command`).
         self.cmd_history_frd = np.zeros((num_uavs, 2, 3))
 
     def randomize(self, index: np.ndarray, ranges: KinematicRandomization | None, rng: np.random.Generator) -> None:
@@ -192,6 +205,8 @@ class KinematicDynamics(Dynamics):
         self.cmd_history_frd[index] = 0.0
 
     def step(self, cmd_frd: np.ndarray, dt_s: float, active: np.ndarray) -> None:
+        """Advance every active UAV by ``dt_s`` (see :meth:`Dynamics.step`); where a UAV has a command delay, the
+        command it flies comes from its history, counted in calls, so ``dt_s`` must not change between calls."""
         p = self.params
         n_sub = max(1, int(round(dt_s / p.substep_s)))
         h = dt_s / n_sub
@@ -200,10 +215,10 @@ class KinematicDynamics(Dynamics):
         state = (self.pos_ned, self.vel_ned, self.yaw_rad, self.yaw_rate_rad_s, self.vel_error_int_ne)
         law = [self.response[name] for name in _LAW_FIELDS]
         delay_s = self.response["command_delay_s"]
-        self._push_command(cmd, float(delay_s.max()), dt_s)
         if not delay_s.any():
             _integrate(*state, cmd, active, h, n_sub, *law)
             return
+        self._push_command(cmd, float(delay_s.max()), dt_s)
         rows = np.arange(self.num_uavs)
         for j in range(n_sub):
             # At time j*h of this period a UAV acts on the newest command sent at least delay_s earlier; the
