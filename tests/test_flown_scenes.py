@@ -399,3 +399,27 @@ def test_the_delay_cell_flies_random_medium_with_a_command_delay_drawn_per_uav()
     env.reset()
     delays = env.dynamics.response["command_delay_s"]
     assert lo <= delays.min() and delays.max() <= hi and np.ptp(delays) > (hi - lo) / 2
+
+
+def test_flown_response_layers_over_every_kinematic_cell_and_is_named(tmp_path, capsys):
+    """``swarm_test flown --response SPEC``: each kinematic cell flies SPEC over its own response (the PX4 cell keeps
+    its ranges, the delay cell takes the named delay), the JSBSim cell is left as it is; flown.md names it; a bad
+    spec is one line and exit 2."""
+    from sitl.sim.dynamics import RESPONSE_PRESETS, nominal_ranges, parse_response
+
+    late = parse_response("command_delay_s=0.1", nominal_ranges())
+    cells = {cell.name: cell.settings for cell in flown_cells(episodes=1, response=late)}
+    assert cells["random-medium"].response.command_delay_s == (0.1, 0.1)
+    assert cells["random-medium"].response.tau_horizontal_s == nominal_ranges().tau_horizontal_s
+    assert cells["circle-n8-px4-sih"].response.command_delay_s == (0.1, 0.1)
+    assert cells["circle-n8-px4-sih"].response.tau_horizontal_s == RESPONSE_PRESETS["px4-sih"]["tau_horizontal_s"]
+    assert cells["random-medium-delay"].response.command_delay_s == (0.1, 0.1)
+    assert cells["random-medium-jsbsim"].response is None
+    out = tmp_path / "flown"
+    assert main(["flown", "--policy", "straight", "--episodes", "1", "--cells", "random-small", "--response",
+                 "command_delay_s=0.1", "--out", str(out), "--no-progress", "--batch", "1"]) == 0
+    assert "also flies the response `command_delay_s=0.1`" in (out / "flown.md").read_text()
+    with pytest.raises(SystemExit) as exc:
+        main(["flown", "--response", "command_delay_s=9"])
+    assert exc.value.code == 2
+    assert "command_delay_s must be" in capsys.readouterr().err

@@ -461,6 +461,11 @@ def parse_flown_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--no-reference", dest="reference", action="store_false",
                         help="do not fly the straight-to-goal reference beside the controller")
     _add_governor(parser)
+    parser.add_argument("--response", type=response_spec, default=None, metavar="SPEC",
+                        help="every kinematic cell also flies this velocity response, drawn per UAV and episode over "
+                             "the cell's own (the JSBSim cell is left as it is): a preset or FIELD=LOW:HIGH items, as "
+                             "for a single evaluation, e.g. command_delay_s=0:0.2 or the spec `python -m "
+                             "sitl.real_autopilots fit RUN` prints; default: each cell's own")
     parser.add_argument("--batch", type=int_range(1, MAX_BATCH), default=100,
                         help="episodes flown at once as parallel worlds (default 100)")
     parser.add_argument("--threads", type=int_range(1, MAX_THREADS), default=2, help="torch threads for the policy (default 2)")
@@ -484,13 +489,14 @@ def flown_main(argv: list[str] | None = None) -> int:
 
         torch.set_num_threads(args.threads)
     cells = flown_cells(args.episodes, args.seed, args.camera_noise, max_steps=args.max_steps, batch=args.batch,
-                        jsbsim=args.jsbsim, jsbsim_episodes=args.jsbsim_episodes, camera=args.camera)
+                        jsbsim=args.jsbsim, jsbsim_episodes=args.jsbsim_episodes, camera=args.camera,
+                        response=args.response)
     if args.cells:
         cells = [cell for cell in cells if cell.name in args.cells]
         if not cells:
             args.parser.error("--cells names only the JSBSim cell, which --no-jsbsim leaves out")
     try:
-        result = run_flown(args.out, cells, methods, args.progress)
+        result = run_flown(args.out, cells, methods, args.progress, args.response)
     except (EvaluationError, OSError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -48,7 +48,7 @@ from sitl.eval.report import markdown_table, write_json
 from sitl.sim.camera import StereoNoise
 from sitl.sim.config import (DENSITIES, FLOWN_ALTITUDE_RANGE_M, FLOWN_CIRCLE_SCATTER_M, OBSTACLE_SCENE_DENSITY,
                              scenario_for)
-from sitl.sim.dynamics import nominal_ranges, parse_response
+from sitl.sim.dynamics import KinematicRandomization, describe_response, nominal_ranges, parse_response
 from sitl.sim.metrics import GOAL_ALTITUDE_BINS_M, success_by_goal_altitude
 
 #: Episodes per cell: random-scene success differs between controllers by a few points, which
@@ -71,12 +71,22 @@ class FlownCell:
     settings: EvalSettings
 
 
+def layered_response(own: KinematicRandomization | None, extra: KinematicRandomization) -> KinematicRandomization:
+    """``own`` (the nominal response if None) with every range that ``extra`` sets away from the nominal one."""
+    nominal = nominal_ranges()
+    changed = {f.name: getattr(extra, f.name) for f in dataclasses.fields(extra)
+               if getattr(extra, f.name) != getattr(nominal, f.name)}
+    return replace(own or nominal, **changed)
+
+
 def flown_cells(episodes: int = DEFAULT_EPISODES, seed: int = 0, camera_noise: bool = True,
                 noise_model: StereoNoise | None = None, max_steps: int = 400, batch: int = 100,
-                jsbsim: bool = True, jsbsim_episodes: int | None = None, camera: str | None = None) -> list[FlownCell]:
+                jsbsim: bool = True, jsbsim_episodes: int | None = None, camera: str | None = None,
+                response: KinematicRandomization | None = None) -> list[FlownCell]:
     """The protocol's cells (see the module doc); ``noise_model`` is the camera's error model (default
     :class:`StereoNoise`), ``jsbsim_episodes`` the JSBSim cell's episodes (default ``episodes``),
-    ``camera`` the camera preset the UAVs carry (default: the policy's own, the paper camera for references)."""
+    ``camera`` the camera preset the UAVs carry (default: the policy's own, the paper camera for references),
+    ``response``: every kinematic cell also flies these ranges, over its own (``swarm_test flown --response``)."""
     common = dict(num_uavs=PROTOCOL_N, episodes=episodes, seed=seed, camera_noise=camera_noise, camera=camera,
                   noise_model=noise_model or StereoNoise(), max_episode_steps=max_steps, batch_worlds=batch,
                   record_paths=False)
@@ -100,6 +110,9 @@ def flown_cells(episodes: int = DEFAULT_EPISODES, seed: int = 0, camera_noise: b
         cells.append(FlownCell("random-medium-jsbsim", EvalSettings(
             scenario=scenario_for("flown", "random", density=DENSITIES["medium"]), dynamics="jsbsim",
             **(common | {"episodes": jsbsim_episodes or episodes}))))
+    if response is not None:
+        cells = [FlownCell(c.name, replace(c.settings, response=layered_response(c.settings.response, response)))
+                 if c.settings.dynamics == "kinematic" else c for c in cells]
     return cells
 
 
@@ -155,9 +168,11 @@ def _altitude_cells(split: dict) -> list[str]:
     return out
 
 
-def run_flown(out: Path, cells: list[FlownCell], methods: list[Method], progress: bool = True) -> dict:
+def run_flown(out: Path, cells: list[FlownCell], methods: list[Method], progress: bool = True,
+              response: KinematicRandomization | None = None) -> dict:
     """Evaluate every controller in every cell (reusing stored results); write ``flown.md``, ``flown.json``
-    and ``flown_success.png``. Returns ``{cell: {method: result}}`` and the status of each."""
+    and ``flown_success.png``. Returns ``{cell: {method: result}}`` and the status of each. ``response``: the
+    ranges the kinematic cells were given over their own (:func:`flown_cells`), named in ``flown.md``."""
     from tqdm import tqdm
 
     from sitl.eval.plots import plot_protocol
@@ -193,6 +208,10 @@ def run_flown(out: Path, cells: list[FlownCell], methods: list[Method], progress
                   f"{FLOWN_COMMAND_DELAY_S[0]:g}-{FLOWN_COMMAND_DELAY_S[1]:g} s; its episodes are not "
                   "random-medium's: the draw moves the episode generator).",
                   ""]
+        if response is not None:
+            lines += [f"Every kinematic cell also flies the response `{describe_response(response, nominal_ranges())}` "
+                      "(`--response`, over its own; each UAV's drawn per episode), so no kinematic cell is "
+                      "nominal here.", ""]
     for m in methods:
         if m.path:
             lines += [f"Policy file: `{m.path}` (sha256 {file_digest(m.path)[:12]}...)", ""]
