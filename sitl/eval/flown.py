@@ -48,7 +48,7 @@ from sitl.eval.report import markdown_table, write_json
 from sitl.sim.camera import StereoNoise
 from sitl.sim.config import (DENSITIES, FLOWN_ALTITUDE_RANGE_M, FLOWN_CIRCLE_SCATTER_M, OBSTACLE_SCENE_DENSITY,
                              scenario_for)
-from sitl.sim.dynamics import KinematicRandomization, describe_response, nominal_ranges, parse_response
+from sitl.sim.dynamics import KinematicRandomization, describe_response, layer_response, nominal_ranges, parse_response
 from sitl.sim.metrics import GOAL_ALTITUDE_BINS_M, success_by_goal_altitude
 
 #: Episodes per cell: random-scene success differs between controllers by a few points, which
@@ -69,14 +69,6 @@ class FlownCell:
 
     name: str
     settings: EvalSettings
-
-
-def layered_response(own: KinematicRandomization | None, extra: KinematicRandomization) -> KinematicRandomization:
-    """``own`` (the nominal response if None) with every range that ``extra`` sets away from the nominal one."""
-    nominal = nominal_ranges()
-    changed = {f.name: getattr(extra, f.name) for f in dataclasses.fields(extra)
-               if getattr(extra, f.name) != getattr(nominal, f.name)}
-    return replace(own or nominal, **changed)
 
 
 def flown_cells(episodes: int = DEFAULT_EPISODES, seed: int = 0, camera_noise: bool = True,
@@ -111,7 +103,7 @@ def flown_cells(episodes: int = DEFAULT_EPISODES, seed: int = 0, camera_noise: b
             scenario=scenario_for("flown", "random", density=DENSITIES["medium"]), dynamics="jsbsim",
             **(common | {"episodes": jsbsim_episodes or episodes}))))
     if response is not None:
-        cells = [FlownCell(c.name, replace(c.settings, response=layered_response(c.settings.response, response)))
+        cells = [FlownCell(c.name, replace(c.settings, response=layer_response(c.settings.response, response)))
                  if c.settings.dynamics == "kinematic" else c for c in cells]
     return cells
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from sitl.sim.dynamics.base import Dynamics
 from sitl.sim.dynamics.kinematic import (RESPONSE_PRESETS, KinematicDynamics, KinematicParams, KinematicRandomization,
-                                        describe_response, nominal_ranges, parse_response)
+                                        describe_response, layer_response, nominal_ranges, parse_response)
 
 DYNAMICS_NAMES = ("kinematic", "jsbsim")
 
@@ -25,4 +25,4 @@ def make_dynamics(name: str, num_uavs: int) -> Dynamics:
 
 
 __all__ = ["DYNAMICS_NAMES", "RESPONSE_PRESETS", "Dynamics", "KinematicDynamics", "KinematicParams", "KinematicRandomization",
-           "describe_response", "make_dynamics", "nominal_ranges", "parse_response"]
+           "describe_response", "layer_response", "make_dynamics", "nominal_ranges", "parse_response"]

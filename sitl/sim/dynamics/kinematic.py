@@ -161,11 +161,22 @@ def parse_response(text: str, base: KinematicRandomization) -> KinematicRandomiz
     return dataclasses.replace(base, **values)  # KinematicRandomization checks each range
 
 
+def _differing(ranges: KinematicRandomization, base: KinematicRandomization) -> dict[str, tuple[float, float]]:
+    """The ranges of ``ranges`` that differ from ``base``, in field order."""
+    return {name: getattr(ranges, name) for name in _RESPONSE_FIELDS if getattr(ranges, name) != getattr(base, name)}
+
+
 def describe_response(ranges: KinematicRandomization, base: KinematicRandomization) -> str:
     """The ranges that differ from ``base``, as a ``--response`` specification (``nominal`` when none)."""
     parts = [f"{name}={lo:g}:{hi:g}" if lo != hi else f"{name}={lo:g}"
-             for name in _RESPONSE_FIELDS for lo, hi in [getattr(ranges, name)] if (lo, hi) != getattr(base, name)]
+             for name, (lo, hi) in _differing(ranges, base).items()]
     return ",".join(parts) or "nominal"
+
+
+def layer_response(own: KinematicRandomization | None, extra: KinematicRandomization) -> KinematicRandomization:
+    """``own`` (the nominal response if None) with every range that ``extra`` sets away from the nominal one."""
+    nominal = nominal_ranges()
+    return dataclasses.replace(own or nominal, **_differing(extra, nominal))
 
 
 class KinematicDynamics(Dynamics):
