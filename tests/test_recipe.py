@@ -272,6 +272,46 @@ def test_the_final_choice_leaves_out_snapshots_that_fail_a_gate_unless_all_do():
     assert select_snapshot(rescored)["updates"] == 20  # rescored rows only, and of those the cleared one
 
 
+def test_the_rescoring_flies_only_snapshots_that_clear_the_gates_unless_none_does(tmp_path):
+    """Gates are flown before the rescoring: a snapshot that cannot be chosen is not flown again."""
+    from sitl.learn.config import SelectionGate
+
+    cfg, agent_cfg = tiny_configs(tmp_path)
+    gate = SelectionGate("paper-circle-n4", "circle", 4, "paper", camera_noise=False, min_success=0.0)
+    stages = (STAGES[0], replace(STAGES[1], gates=(gate,)))
+
+    def recipe() -> Recipe:
+        return Recipe(cfg, agent_cfg, stages, tmp_path, rescore_top=10, rescore_episodes=2, gate_episodes=2)
+
+    recipe().run()
+    index = tmp_path / "stage2-second" / "snapshots" / "validation.json"
+    rows = json.loads(index.read_text())
+    assert len(rows) >= 2 and all("rescored" in row for row in rows)  # every snapshot cleared the bar of 0
+    rows[0]["gate"]["passed"] = False  # as if it had lost the gate's scene
+    for row in rows:
+        del row["rescored"]
+    index.write_text(json.dumps(rows))
+    recipe()._rescore_last()
+    rows = json.loads(index.read_text())
+    assert "rescored" not in rows[0] and all("rescored" in row for row in rows[1:])
+
+    for row in rows:  # nobody clears the gates: all compete, so all are flown again
+        row["gate"]["passed"] = False
+        row.pop("rescored", None)
+    index.write_text(json.dumps(rows))
+    recipe()._rescore_last()
+    assert all("rescored" in row for row in json.loads(index.read_text()))
+
+
+def test_flown_distill_rescores_every_last_stage_snapshot_in_random_and_obstacle_scenes():
+    """The final choice of flown-distill (session 67) flies each stage-4 snapshot again, not the top few."""
+    last = PRESETS["flown-distill"]["stages"][-1]
+    recipe = PRESETS["flown-distill"]["recipe"]
+    snapshots = last.train["total_updates"] // last.train["eval_every_updates"]
+    assert recipe["rescore_top"] >= snapshots and recipe["rescore_episodes"] >= 500
+    assert [scene[0] for scene in last.rescore_scenes] == ["random-medium", "obstacles"]
+
+
 def test_a_gate_flies_its_own_circle_whatever_the_run_scatters():
     """A run that scatters its circles (``circle_scatter_m``) still gates on the paper's symmetric circle."""
     from sitl.learn.config import PAPER_CIRCLE_GATE, TrainConfig, make_sim_config

@@ -22,10 +22,11 @@ Presets (``--preset``):
 * ``flown-distill`` — flown-fast's four stages, the first two as the ``distill`` method (a DAgger
   student of privileged ORCA, four times the data per update), the last two as SAC on the student's
   frozen convolutions, still pulled towards the teacher and validated at 40 s; circle worlds are
-  taught by camera-limited ORCA that keeps right (``--circle-teacher-right``): 36 min on 2 cores, five
+  taught by camera-limited ORCA that keeps right (``--circle-teacher-right``): 33-36 min on 2 cores until session 67, five
   seeds' paper medium 0.906 within 1.4 points, every circle of 8 at 1.000 (a method beside SAC+AE, issue 17;
   docs/training.md "A circle teacher the camera can explain"). Its final choice leaves out snapshots that
-  lose the paper's circle of 14 on validation seeds (a gate, session 43).
+  lose the paper's circle of 14 on validation seeds (a gate, session 43) and flies the others again on 500
+  validation episodes of random medium and obstacles (session 67: ~8.5 more minutes, 41 min in all).
 * ``bundle-paper`` — a recipe: the paper-camera policy's four-stage curriculum.
 
 Everything is a command-line flag (``--help``); a run directory holds ``config.json``,

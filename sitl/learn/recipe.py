@@ -5,8 +5,8 @@ sitl.train --preset NAME`` runs its stages one after the other in one run direct
 stage a complete training run of its own (``RUN/stage<i>-<name>/``, with its config,
 TensorBoard logs, validated snapshots and checkpoint) that starts from the networks the
 previous stage selected (``init_from``). After the last stage the best validated snapshots
-of that stage are flown again on more validation episodes (:func:`sitl.learn.rescore.rescore_snapshot`),
-snapshots that fail the last stage's gates (:class:`sitl.learn.config.SelectionGate`) are left out,
+of that stage that clear its gates (:class:`sitl.learn.config.SelectionGate`; all of them if none does) are flown
+again on more validation episodes (:func:`sitl.learn.rescore.rescore_snapshot`),
 the winner gets the test-seed evaluation and is exported to ``RUN/policy.pt`` with the whole
 recipe in its provenance, including the wall time from the first update to the export.
 
@@ -208,7 +208,10 @@ class Recipe:
             if done and (done.get("episodes"), done.get("max_episode_steps"), sorted(done["scenes"])) != \
                     (self.rescore_episodes, steps, sorted(s[0] for s in scenes)):
                 del row["rescored"]
-        candidates = sorted(rows, key=lambda r: (r["score"], r["updates"]), reverse=True)[:self.rescore_top]
+        # Gates are flown first: a snapshot that fails them cannot be chosen, so it is not flown again (unless
+        # every snapshot fails, and then all compete, as in select_snapshot).
+        cleared = [row for row in rows if row.get("gate", {}).get("passed", True)] or rows
+        candidates = sorted(cleared, key=lambda r: (r["score"], r["updates"]), reverse=True)[:self.rescore_top]
         for row in candidates:
             if "rescored" in row:
                 continue  # done before an interruption
@@ -309,9 +312,9 @@ class Recipe:
             self.state["stages"].append(record)
             self._checkpoint_state()
             init_from = record["snapshot"]
+        self._gate_last()
         if self.rescore_top > 0 and self.rescore_episodes > 0:
             self._rescore_last()
-        self._gate_last()
         path = self._export()
         # Rounded as policy.json's wall_time_s is, from a later instant: never below it.
         self.state["wall_s"] = round(self._elapsed(), 1)
