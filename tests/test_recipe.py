@@ -131,7 +131,9 @@ def test_train_help_lists_a_recipes_stages():
     assert "recipe of 4 stages" in out.stdout and "stage 4 'mixed15'" in out.stdout
     out = subprocess.run([sys.executable, "-m", "sitl.train", "--preset", "flown-distill", "--help"], cwd=REPO,
                          capture_output=True, text=True, timeout=120)
-    assert "final choice: only snapshots with paper-circle-n14" in " ".join(out.stdout.split())
+    text = " ".join(out.stdout.split())
+    assert "final choice: only snapshots with paper-circle-n14" in text
+    assert "flown again on 500 validation episodes each of random-medium, obstacles" in text
 
 
 def test_a_stage_is_validated_only_on_the_scenes_it_trains_on():

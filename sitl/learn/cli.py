@@ -93,6 +93,11 @@ def build_parser(preset: str = TrainConfig.preset) -> argparse.ArgumentParser:
         lines += [f"  final choice: only snapshots with {g.name} (a {g.num_uavs}-UAV {g.scenario} scene, {g.geometry} "
                   f"geometry, camera noise {'on' if g.camera_noise else 'off'}, validation seeds) >= {g.min_success:g}"
                   for g in stages[-1].gates]
+        recipe = PRESETS[preset].get("recipe", {})
+        if recipe.get("rescore_top", 0) > 0 and recipe.get("rescore_episodes", 0) > 0:
+            lines.append(f"  final choice: the last stage's {recipe['rescore_top']} best snapshots flown again on "
+                         f"{recipe['rescore_episodes']} validation episodes each of "
+                         f"{', '.join(s[0] for s in stages[-1].rescore_scenes)}; the best mean over the kinds of scene")
         parser.epilog = f"preset {preset} is a recipe of {len(stages)} stages (sitl.learn.recipe):\n" + "\n".join(lines)
     parser.add_argument("--recipe-scale", type=positive_float, default=None, metavar="F",
                         help="recipe presets: multiply every stage's updates and validation interval by F "
