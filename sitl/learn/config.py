@@ -548,7 +548,8 @@ PAPER_CIRCLE_GATE = SelectionGate("paper-circle-n14", "circle", 14, "paper", cam
 #: and the snapshots it chooses between differ by about one (a run's four read 0.905-0.918 on 1,000 validation
 #: episodes each, and the validation had chosen the 0.905 one). The circle is left to the gate: every snapshot
 #: flies the flown circle of 8 at 1.000. Until session 67 the choice flew no candidate again.
-_DISTILL_RESCORE_TOP = 4  # stage 4 validates every 1,500 of its 6,000 updates: all of its snapshots
+_DISTILL_RESCORE_TOP = (PRESETS["flown-fast"]["stages"][3].train["total_updates"]  # all of stage 4's snapshots
+                        // PRESETS["flown-fast"]["stages"][3].train["eval_every_updates"])
 _DISTILL_RESCORE_EPISODES = 500
 _DISTILL_RESCORE_SCENES = (("random-medium", "random", 8, "medium"), ("obstacles", "obstacles", 8, "medium"))
 _IMITATE = {"method": "distill", "updates_per_env_step": 0.25, "replay_capacity": 200_000}

@@ -31,7 +31,7 @@ import numpy as np
 from sitl.learn.agent import AgentConfig
 from sitl.learn.config import RecipeStage, TrainConfig
 from sitl.learn.rescore import gate_snapshot, rescore_snapshot, snapshot_actor
-from sitl.learn.trainer import make_trainer, select_snapshot
+from sitl.learn.trainer import gate_cleared, make_trainer, select_snapshot
 
 RECIPE_FILE = "recipe.json"
 
@@ -208,10 +208,9 @@ class Recipe:
             if done and (done.get("episodes"), done.get("max_episode_steps"), sorted(done["scenes"])) != \
                     (self.rescore_episodes, steps, sorted(s[0] for s in scenes)):
                 del row["rescored"]
-        # Gates are flown first: a snapshot that fails them cannot be chosen, so it is not flown again (unless
-        # every snapshot fails, and then all compete, as in select_snapshot).
-        cleared = [row for row in rows if row.get("gate", {}).get("passed", True)] or rows
-        candidates = sorted(cleared, key=lambda r: (r["score"], r["updates"]), reverse=True)[:self.rescore_top]
+        # Gates are flown first: a snapshot that fails them cannot be chosen, so it is not flown again.
+        ranked = sorted(gate_cleared(rows), key=lambda r: (r["score"], r["updates"]), reverse=True)
+        candidates = ranked[:self.rescore_top]
         for row in candidates:
             if "rescored" in row:
                 continue  # done before an interruption

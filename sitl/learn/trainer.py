@@ -168,14 +168,17 @@ def snapshot_score(row: dict) -> float:
     return row["rescored"]["score"] if "rescored" in row else row["score"]
 
 
+def gate_cleared(rows: list[dict]) -> list[dict]:
+    """The rows of ``validation.json`` that cleared the recipe's gates (``"gate"``,
+    :class:`sitl.learn.config.SelectionGate`; a row never gated counts as cleared), or all of them if none did."""
+    return [row for row in rows if row.get("gate", {}).get("passed", True)] or rows
+
+
 def select_snapshot(rows: list[dict]) -> dict:
     """The best row of ``validation.json``; rescored rows (``sitl.rescore``) compete only among themselves, and
-    of those, only the ones that cleared the recipe's gates (``"gate"``, :class:`sitl.learn.config.SelectionGate`)
-    unless none did."""
+    of those, only the ones that cleared the recipe's gates unless none did (:func:`gate_cleared`)."""
     rescored = [row for row in rows if "rescored" in row]
-    pool = rescored or rows
-    cleared = [row for row in pool if row.get("gate", {}).get("passed", True)]
-    return max(cleared or pool, key=lambda row: (snapshot_score(row), row["updates"]))
+    return max(gate_cleared(rescored or rows), key=lambda row: (snapshot_score(row), row["updates"]))
 
 
 def earlier_history(path: Path, episodes: int) -> dict:
