@@ -41,6 +41,9 @@ COMPANION_LOSS_PARAMS = {ARDUCOPTER: {"GUID_TIMEOUT": 0.5}, PX4: {"COM_OF_LOSS_T
 HOLD_MODES = {ARDUCOPTER: "BRAKE", PX4: "AUTO.LOITER"}  # what the pilot switches to in the hand-back test
 FAILSAFE_MODES = {"RTL", "AUTO.RTL", "LAND", "AUTO.LAND", "SMART_RTL"}
 READY_TIMEOUT_S = 240.0
+# The autopilots' SITL ports are fixed: under pytest-xdist (pyproject's addopts) every test
+# here runs on one worker, one after another (``--dist loadgroup``).
+pytestmark = pytest.mark.xdist_group("real_autopilot_fixed_ports")
 
 
 def _binary(kind: str):
