@@ -18,6 +18,10 @@ Usage: ``python benchmarks/camera_model.py [--episodes 20] [--smoke]`` (``--smok
 per scene, what CI runs to keep the script working). ``--render-cost [--repo CHECKOUT]`` only
 times ``DepthCamera.render`` of 128 cameras (32x32, 4x4 sub-rays, random medium scene, one
 thread, best of 7 x 20 renders) in this or another checkout: alternate runs for a before/after.
+``--noise-cost [--repo CHECKOUT]`` likewise times ``StereoNoise.apply`` on what an evaluation batch
+renders (800 cameras: 100 random medium worlds of 8, the D435 preset's 32x20), for the evaluation
+protocols' noise (occlusion-shadow edges) and the recipes' training noise (both sides of every edge),
+best of 7 x 20 calls each.
 """
 
 from __future__ import annotations
@@ -126,15 +130,45 @@ def render_cost_ms() -> float:
     return best * 1e3
 
 
+def noise_cost_ms() -> dict:
+    """Milliseconds per ``StereoNoise.apply`` on 800 D435 frames, per edge-hole model, best of 7 x 20."""
+    import time
+
+    from companion.spec import CAMERA_PRESETS
+    from sitl.sim.camera import StereoNoise
+
+    env = SwarmEnv(SimConfig(num_uavs=8, num_worlds=100, record_paths=False,
+                             camera=CAMERA_PRESETS["realsense_d435"]), seed=0)
+    env.reset()
+    d = env.dynamics
+    depth = env.camera.render(d.pos_ned, d.yaw_rad, 8, visible=env.present)
+    costs = {}
+    for edges in ("shadow", "both"):
+        noise, rng = StereoNoise(edge_holes=edges), np.random.default_rng(0)
+        noise.apply(depth, env.camera.spec.max_range_m, rng)  # compile / warm up
+        best = float("inf")
+        for _ in range(7):
+            started = time.perf_counter()
+            for _ in range(20):
+                noise.apply(depth, env.camera.spec.max_range_m, rng)
+            best = min(best, (time.perf_counter() - started) / 20)
+        costs[f"ms_per_800_frames_{edges}"] = round(best * 1e3, 3)
+    return costs
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--episodes", type=int, default=20, help="episodes per scene (default 20)")
     parser.add_argument("--smoke", action="store_true", help="CI check: 2 episodes per scene")
     parser.add_argument("--render-cost", action="store_true", help="only time the render kernel")
-    parser.add_argument("--repo", default=None, help="with --render-cost: the checkout whose kernel to time")
+    parser.add_argument("--noise-cost", action="store_true", help="only time the stereo noise model")
+    parser.add_argument("--repo", default=None, help="with --render-cost or --noise-cost: the checkout whose code to time")
     args = parser.parse_args()
     if args.render_cost:
         print(json.dumps({"benchmark": "render_cost", "repo": _REPO, "ms_per_128_cameras": round(render_cost_ms(), 3)}))
+        return
+    if args.noise_cost:
+        print(json.dumps({"benchmark": "noise_cost", "repo": _REPO, **noise_cost_ms()}))
         return
     episodes = 2 if args.smoke else args.episodes
     if episodes < 1:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from companion.spec import CameraSpec
-from sitl.sim.camera import DepthCamera, SceneGeometry, StereoNoise
+from sitl.sim.camera import EDGE_HOLE_MODELS, DepthCamera, SceneGeometry, StereoNoise
 from tests.reference_camera import render_reference
 
 
@@ -215,3 +215,56 @@ def test_a_simulated_real_sensor_image_becomes_what_the_policy_was_trained_on(pr
     assert converted.min() == pytest.approx(trained.min(), abs=0.05)  # the UAV, ~4.7 m
     # Same picture: the ground rows and the UAV's pixels agree to within a pixel's footprint.
     assert np.mean(np.abs(converted - trained) < 0.5) > 0.9
+
+
+def _stereo_noise_numpy(noise: StereoNoise, depth_m: np.ndarray, max_range_m: float,
+                        rng: np.random.Generator) -> np.ndarray:
+    """The NumPy expression :meth:`StereoNoise.apply` was until session 68, kept as its oracle."""
+    depth_m = np.asarray(depth_m, dtype=np.float32)
+    coeff = np.float32(noise.quadratic_coeff_per_m)
+    noisy = depth_m + rng.standard_normal(depth_m.shape, dtype=np.float32) * (coeff * depth_m * depth_m)
+    z = np.clip(depth_m, 0.0, max_range_m) / np.float32(max_range_m)
+    invalid = (depth_m >= max_range_m) | (depth_m < noise.min_range_m)
+    invalid |= rng.random(depth_m.shape, dtype=np.float32) < noise.far_hole_prob * z * z + noise.dropout_prob
+    if noise.edge_hole_prob > 0:
+        edge = np.zeros(depth_m.shape, dtype=bool)
+        if noise.edge_holes == "shadow":
+            left, right = depth_m[..., :-1], depth_m[..., 1:]
+            edge[..., :-1] = left - right > noise.edge_jump_fraction * right
+        else:
+            frac = noise.edge_jump_fraction
+            jump = np.abs(np.diff(depth_m, axis=-1)) > frac * np.minimum(depth_m[..., 1:], depth_m[..., :-1])
+            edge[..., 1:] |= jump
+            edge[..., :-1] |= jump
+            jump = np.abs(np.diff(depth_m, axis=-2)) > frac * np.minimum(depth_m[..., 1:, :], depth_m[..., :-1, :])
+            edge[..., 1:, :] |= jump
+            edge[..., :-1, :] |= jump
+        invalid |= edge & (rng.random(depth_m.shape, dtype=np.float32) < noise.edge_hole_prob)
+    height, width = depth_m.shape[-2:]
+    mask = invalid.reshape(-1, height, width)
+    for k in np.flatnonzero(rng.random(mask.shape[0]) < noise.blob_prob):
+        bh, bw = rng.integers(2, noise.blob_max_px + 1, size=2)
+        top, left = rng.integers(0, max(height - bh, 0) + 1), rng.integers(0, max(width - bw, 0) + 1)
+        mask[k, top:top + bh, left:left + bw] = True
+    noisy = np.maximum(noisy, np.float32(noise.min_range_m))
+    noisy[mask.reshape(depth_m.shape)] = 0.0
+    return noisy
+
+
+@pytest.mark.parametrize("edge_holes", EDGE_HOLE_MODELS)
+def test_compiled_stereo_noise_equals_the_numpy_expression_bit_for_bit(edge_holes):
+    """The same draws give the same noisy image as the NumPy expression, so every number measured
+    before the compiled pass (session 68) reproduces exactly: thresholds included (depths exactly at
+    the range, at min_range, and steps exactly at the edge jump)."""
+    rng = np.random.default_rng(5)
+    depth = (rng.random((2, 40, 20, 32), dtype=np.float32) * 24.0).astype(np.float32)
+    depth[0, :, :, :4] = 20.0  # exactly at the range: invalid
+    depth[0, :, :, 4:6] = np.float32(0.2)  # exactly at min_range
+    depth[1, :, :, 8], depth[1, :, :, 9] = 5.0, 4.0  # a jump of exactly 0.25 of the nearer side
+    depth[1, :, 5:8, :] = 1.0  # a near band: horizontal and vertical edges
+    for noise in (StereoNoise(edge_holes=edge_holes), StereoNoise(edge_holes=edge_holes, edge_hole_prob=0.0),
+                  StereoNoise(edge_holes=edge_holes, blob_prob=1.0, edge_hole_prob=1.0)):
+        expected = _stereo_noise_numpy(noise, depth, 20.0, np.random.default_rng(7))
+        got = noise.apply(depth, 20.0, np.random.default_rng(7))
+        assert got.dtype == np.float32 and got.shape == depth.shape
+        np.testing.assert_array_equal(got, expected)

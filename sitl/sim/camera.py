@@ -514,36 +514,74 @@ class StereoNoise:
         return self.subpixel_px / (self.focal_px * self.baseline_m)
 
     def apply(self, depth_m: np.ndarray, max_range_m: float, rng: np.random.Generator) -> np.ndarray:
-        """Return a noisy float32 copy of perfect depth ``depth_m`` [..., H, W], invalid pixels 0."""
+        """Return a noisy float32 copy of perfect depth ``depth_m`` [..., H, W], invalid pixels 0.
+
+        The random draws are taken from ``rng`` in a fixed order (depth error, holes, edge
+        holes, blobs) and the per-pixel arithmetic runs in one compiled pass
+        (:func:`_stereo_noise_pixels`), in float32 as NumPy would do it: the same draws give the
+        same image bit for bit as the NumPy expression it replaced (session 68, ``tests/test_camera.py``),
+        in about half the time (``python benchmarks/camera_model.py --noise-cost``); the draws are
+        most of what is left.
+        """
         depth_m = np.asarray(depth_m, dtype=np.float32)
-        coeff = np.float32(self.quadratic_coeff_per_m)
-        noisy = depth_m + rng.standard_normal(depth_m.shape, dtype=np.float32) * (coeff * depth_m * depth_m)
-        z = np.clip(depth_m, 0.0, max_range_m) / np.float32(max_range_m)
-        invalid = (depth_m >= max_range_m) | (depth_m < self.min_range_m)
-        invalid |= rng.random(depth_m.shape, dtype=np.float32) < self.far_hole_prob * z * z + self.dropout_prob
-        if self.edge_hole_prob > 0:
-            edge = np.zeros(depth_m.shape, dtype=bool)
-            if self.edge_holes == "shadow":
-                # the pixel left of a nearer right-hand neighbour (the far side of the jump only)
-                left, right = depth_m[..., :-1], depth_m[..., 1:]
-                edge[..., :-1] = left - right > self.edge_jump_fraction * right
-            else:
-                jump = np.abs(np.diff(depth_m, axis=-1)) > self.edge_jump_fraction * np.minimum(depth_m[..., 1:], depth_m[..., :-1])
-                edge[..., 1:] |= jump
-                edge[..., :-1] |= jump
-                jump = np.abs(np.diff(depth_m, axis=-2)) > self.edge_jump_fraction * np.minimum(depth_m[..., 1:, :], depth_m[..., :-1, :])
-                edge[..., 1:, :] |= jump
-                edge[..., :-1, :] |= jump
-            invalid |= edge & (rng.random(depth_m.shape, dtype=np.float32) < self.edge_hole_prob)
-        if self.blob_prob > 0 and depth_m.ndim >= 2:
-            height, width = depth_m.shape[-2:]
-            frames = depth_m.reshape(-1, height, width)
-            mask = invalid.reshape(-1, height, width)
+        if depth_m.ndim < 2:
+            raise ValueError(f"depth must be [..., H, W], got shape {depth_m.shape}")
+        height, width = depth_m.shape[-2:]
+        frames = np.ascontiguousarray(depth_m).reshape(-1, height, width)
+        error = rng.standard_normal(frames.shape, dtype=np.float32)
+        hole_draw = rng.random(frames.shape, dtype=np.float32)
+        edge_draw = rng.random(frames.shape, dtype=np.float32) if self.edge_hole_prob > 0 else hole_draw
+        noisy, invalid = _stereo_noise_pixels(
+            frames, error, hole_draw, edge_draw, np.float32(self.quadratic_coeff_per_m), np.float32(max_range_m),
+            np.float32(self.min_range_m), np.float32(self.far_hole_prob), np.float32(self.dropout_prob),
+            self.edge_hole_prob > 0, self.edge_holes == "shadow", np.float32(self.edge_jump_fraction),
+            np.float32(self.edge_hole_prob))
+        if self.blob_prob > 0:
             for k in np.flatnonzero(rng.random(frames.shape[0]) < self.blob_prob):
                 bh, bw = rng.integers(2, self.blob_max_px + 1, size=2)
                 top, left = rng.integers(0, max(height - bh, 0) + 1), rng.integers(0, max(width - bw, 0) + 1)
-                mask[k, top:top + bh, left:left + bw] = True
-            invalid = mask.reshape(depth_m.shape)
-        noisy = np.maximum(noisy, np.float32(self.min_range_m))
+                invalid[k, top:top + bh, left:left + bw] = True
         noisy[invalid] = 0.0
-        return noisy.astype(np.float32, copy=False)
+        return noisy.reshape(depth_m.shape)
+
+
+@numba.njit(cache=True)
+def _stereo_noise_pixels(depth, error, hole_draw, edge_draw, coeff, max_range, min_range, far_hole_prob,
+                         dropout_prob, edge_holes, shadow, jump_fraction, edge_hole_prob):
+    """:meth:`StereoNoise.apply`'s per-pixel part on frames [F, H, W]: (depth with its error, clamped to
+    ``min_range``; invalid mask before the blobs). Every operand is float32, in NumPy's order of operations."""
+    n_frames, height, width = depth.shape
+    noisy = np.empty_like(depth)
+    invalid = np.empty(depth.shape, dtype=np.bool_)
+    zero = np.float32(0.0)
+    for f in range(n_frames):
+        for r in range(height):
+            for c in range(width):
+                d = depth[f, r, c]
+                z = min(max(d, zero), max_range) / max_range
+                bad = (d >= max_range) or (d < min_range)
+                bad = bad or hole_draw[f, r, c] < far_hole_prob * z * z + dropout_prob
+                if edge_holes and not bad and edge_draw[f, r, c] < edge_hole_prob:
+                    edge = False
+                    if shadow:
+                        # the pixel left of a nearer right-hand neighbour (the far side of the jump only)
+                        if c + 1 < width:
+                            right = depth[f, r, c + 1]
+                            edge = d - right > jump_fraction * right
+                    else:  # both sides of every jump, along rows and columns
+                        if c + 1 < width:
+                            o = depth[f, r, c + 1]
+                            edge = edge or abs(o - d) > jump_fraction * min(o, d)
+                        if c > 0:
+                            o = depth[f, r, c - 1]
+                            edge = edge or abs(d - o) > jump_fraction * min(d, o)
+                        if r + 1 < height:
+                            o = depth[f, r + 1, c]
+                            edge = edge or abs(o - d) > jump_fraction * min(o, d)
+                        if r > 0:
+                            o = depth[f, r - 1, c]
+                            edge = edge or abs(d - o) > jump_fraction * min(d, o)
+                    bad = edge
+                invalid[f, r, c] = bad
+                noisy[f, r, c] = max(d + error[f, r, c] * (coeff * d * d), min_range)
+    return noisy, invalid
