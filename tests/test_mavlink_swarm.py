@@ -146,7 +146,9 @@ def test_a_dying_companion_stops_the_run_and_is_named(tmp_path):
     proc = _start_swarm_test(out, 2, ports)
     try:
         _wait_for_phase(out, "companion_1", "taking_off")
-        victims = [line.split(":")[0] for line in _processes_mentioning("companion_1.jsonl")]
+        # this run's companion_1 only (its log path): under pytest-xdist another test's swarm may be flying
+        own_log = str(out / "episodes" / "ep000" / "companion_1.jsonl")
+        victims = [line.split(":")[0] for line in _processes_mentioning(own_log)]
         assert victims
         for pid in victims:
             os.kill(int(pid), signal.SIGKILL)
