@@ -45,7 +45,7 @@ speeds survive ``run_ic()``, so the propellers are then run at the hover throttl
 airframe put back by ``run_ic()`` after every (20 ms) step until their speed settles, and
 the UAV starts hovering with its propellers at hover speed (~0.35 ms per UAV from flight).
 
-Measured step responses (``python -m pytest -n 0 -s tests/test_jsbsim_dynamics.py``;
+Measured step responses (``python -m pytest -s tests/test_jsbsim_dynamics.py``;
 from hover, states sampled every 10 ms, steady state = mean over the last 2 s):
 
 * forward 0 -> 2 m/s at yaw 90 deg: 10-90 % rise time 0.61 s, steady-state error 0.0003 m/s
